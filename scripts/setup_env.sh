@@ -1,0 +1,28 @@
+#!/usr/bin/env bash
+# Create or update the project's Python environment (idempotent; ~1-2 min the first time,
+# under a second when requirements.txt and setup.py are unchanged).
+#   VENV: where the virtualenv lives (default: <repo>/.venv)
+# Prints the path of the venv's bin directory on the last line.
+set -euo pipefail
+repo=$(cd "$(dirname "$0")/.." && pwd)
+venv=${VENV:-$repo/.venv}
+py=${PYTHON:-python3}
+stamp=$venv/.semfeat_stamp
+want=$(cat "$repo/requirements.txt" "$repo/setup.py" "$repo/setup.cfg" | sha256sum | cut -c1-16)
+
+if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ] && [ -x "$venv/bin/python" ]; then
+  echo "$venv/bin"
+  exit 0
+fi
+"$py" -c 'import sys; assert sys.version_info[:2] == (3, 11), sys.version' \
+  || { echo "semfeat_ros needs Python 3.11 (set PYTHON=...)" >&2; exit 1; }
+echo "setting up $venv (first run takes a minute or two) ..." >&2
+[ -x "$venv/bin/python" ] || "$py" -m venv "$venv"
+# torch==2.13.0 is pinned in requirements.txt: that CPU wheel is on local disk; any other
+# spec would download CUDA builds.
+"$venv/bin/python" -m pip install --quiet --disable-pip-version-check \
+  -r "$repo/requirements.txt" 2> >(grep -v "^WARNING: Location" >&2)
+"$venv/bin/python" -m pip install --quiet --disable-pip-version-check --no-deps \
+  --no-build-isolation -e "$repo" 2> >(grep -v "^WARNING: Location" >&2)
+echo "$want" > "$stamp"
+echo "$venv/bin"

@@ -1,0 +1,33 @@
+"""ament_python build of semfeat_ros (colcon build / ros2 run), also pip-installable for tools."""
+from __future__ import annotations
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = 'semfeat_ros'
+
+# Console scripts: the three nodes (``ros2 run semfeat_ros <node>``) and the offline tools.
+# ament_python installs all of them into lib/semfeat_ros (see setup.cfg), where ros2 run looks.
+CONSOLE_SCRIPTS: list[str] = []
+
+setup(
+    name=PACKAGE,
+    version='0.1.0',
+    packages=find_packages(exclude=['test', 'test.*']),
+    package_data={PACKAGE: ['weights/*.safetensors', 'weights/*.json', 'weights/*.md']},
+    data_files=[
+        ('share/ament_index/resource_index/packages', [f'resource/{PACKAGE}']),
+        (f'share/{PACKAGE}', ['package.xml']),
+        (f'share/{PACKAGE}/config', glob('config/*.yaml')),
+        (f'share/{PACKAGE}/launch', glob('launch/*.launch.py')),
+    ],
+    install_requires=['setuptools'],
+    zip_safe=False,
+    maintainer='semfeat_ros developers',
+    maintainer_email='semfeat-ros@example.com',
+    description='Semantic-aware fisheye features, sequential matching and multi-floor mapping.',
+    license='BSD-3-Clause',
+    tests_require=['pytest'],
+    entry_points={'console_scripts': CONSOLE_SCRIPTS},
+)
