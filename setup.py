@@ -28,6 +28,5 @@ setup(
     maintainer_email='semfeat-ros@example.com',
     description='Semantic-aware fisheye features, sequential matching and multi-floor mapping.',
     license='BSD-3-Clause',
-    tests_require=['pytest'],
     entry_points={'console_scripts': CONSOLE_SCRIPTS},
 )

@@ -24,5 +24,7 @@ echo "setting up $venv (first run takes a minute or two) ..." >&2
   -r "$repo/requirements.txt" 2> >(grep -v "^WARNING: Location" >&2)
 "$venv/bin/python" -m pip install --quiet --disable-pip-version-check --no-deps \
   --no-build-isolation -e "$repo" 2> >(grep -v "^WARNING: Location" >&2)
+# The venv holds package.xml files of the ROS wheels: keep colcon from crawling into it.
+touch "$venv/COLCON_IGNORE"
 echo "$want" > "$stamp"
 echo "$venv/bin"

@@ -1,0 +1,98 @@
+"""Per-node health accounting published on /diagnostics (diagnostic_msgs/DiagnosticArray)."""
+from __future__ import annotations
+
+import math
+import time
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.node import Node
+
+from semfeat_ros.runtime import Counters, LatencyStats, RateMeter
+
+
+class NodeHealth:
+    """Counts and rates of one node; ``publish()`` sends them as one DiagnosticStatus.
+
+    Latency is measured from the input message's header stamp to the moment the output is
+    published, on the node's clock (sim time during bag replay with /clock).
+    """
+
+    def __init__(self, node: Node, hardware_id: str = 'camera_front'):
+        self._node = node
+        self._hardware_id = hardware_id
+        self.counters = Counters()
+        self.input_rate = RateMeter()
+        self.output_rate = RateMeter()
+        self.latency = LatencyStats()
+        self.compute = LatencyStats()
+        self.last_error = ''
+        self.extra: dict[str, str] = {}
+        self._pub = node.create_publisher(DiagnosticArray, '/diagnostics', 10)
+
+    def on_input(self) -> None:
+        self.counters.received += 1
+        self.input_rate.tick()
+
+    def on_output(self, stamp_ns: int, compute_s: float | None = None) -> None:
+        self.counters.processed += 1
+        self.output_rate.tick()
+        now_ns = self._node.get_clock().now().nanoseconds
+        if stamp_ns > 0:
+            self.latency.add((now_ns - stamp_ns) * 1e-9)
+        if compute_s is not None:
+            self.compute.add(compute_s)
+
+    def on_reject(self, reason: str) -> None:
+        """Count a rejected input and log it, throttled (the node keeps running)."""
+        self.counters.rejected += 1
+        self.last_error = reason
+        self._node.get_logger().warning(f'rejected input: {reason}', throttle_duration_sec=2.0)
+
+    def on_error(self, exc: BaseException) -> None:
+        """Count an internal error (processing failed on an accepted input)."""
+        self.counters.errors += 1
+        self.last_error = f'{type(exc).__name__}: {exc}'
+        self._node.get_logger().error(f'processing failed: {self.last_error}',
+                                      throttle_duration_sec=2.0)
+
+    def status(self) -> DiagnosticStatus:
+        c = self.counters
+        p50, p95 = self.latency.percentiles()
+        c50, c95 = self.compute.percentiles()
+        level = DiagnosticStatus.OK
+        message = 'ok'
+        if c.errors:
+            level, message = DiagnosticStatus.WARN, f'{c.errors} processing errors'
+        elif c.rejected:
+            level, message = DiagnosticStatus.WARN, f'{c.rejected} inputs rejected'
+        if c.received and not c.processed:
+            level, message = DiagnosticStatus.WARN, 'no output yet'
+
+        def fmt(x: float) -> str:
+            return 'nan' if math.isnan(x) else f'{x:.4f}'
+
+        values = {
+            'input_hz': f'{self.input_rate.rate():.2f}',
+            'output_hz': f'{self.output_rate.rate():.2f}',
+            'latency_p50_s': fmt(p50), 'latency_p95_s': fmt(p95),
+            'compute_p50_s': fmt(c50), 'compute_p95_s': fmt(c95),
+            'frames_received': str(c.received), 'frames_processed': str(c.processed),
+            'frames_dropped': str(c.dropped), 'errors_rejected': str(c.rejected),
+            'processing_errors': str(c.errors), 'last_error': self.last_error,
+            **self.extra,
+        }
+        return DiagnosticStatus(
+            level=level, name=f'{self._node.get_name()}: pipeline', message=message,
+            hardware_id=self._hardware_id,
+            values=[KeyValue(key=k, value=v) for k, v in values.items()])
+
+    def publish(self) -> None:
+        msg = DiagnosticArray()
+        msg.header.stamp = self._node.get_clock().now().to_msg()
+        msg.status = [self.status()]
+        self._pub.publish(msg)
+
+
+def wall_time() -> float:
+    """Monotonic seconds for compute-time measurements."""
+    return time.perf_counter()

@@ -1,0 +1,42 @@
+"""Every module of the package imports, and the architecture boundaries hold."""
+from __future__ import annotations
+
+import importlib
+import pkgutil
+import re
+
+from conftest import REPO
+import pytest
+
+PACKAGES = ('semfeat_ros', 'msg_adapters')
+
+
+def all_modules() -> list[str]:
+    names = []
+    for top in PACKAGES:
+        pkg = importlib.import_module(top)
+        names.append(top)
+        names += [m.name for m in pkgutil.walk_packages(pkg.__path__, prefix=f'{top}.')]
+    return sorted(names)
+
+
+@pytest.mark.parametrize('module', all_modules())
+def test_module_imports(module: str) -> None:
+    importlib.import_module(module)
+
+
+@pytest.mark.parametrize('lib,allowed', [
+    ('rclpy', ('semfeat_ros/nodes/', 'semfeat_ros/tools/')),
+    ('torch', ('semfeat_ros/model/',)),
+    ('gtsam', ('semfeat_ros/mapping/',)),
+])
+def test_library_boundaries(lib: str, allowed: tuple[str, ...]) -> None:
+    """rclpy only in nodes/tools, torch only in model, gtsam only in mapping (DESIGN.md)."""
+    pattern = re.compile(rf'^\s*(import {lib}\b|from {lib}\b)', re.MULTILINE)
+    offenders = []
+    for top in PACKAGES:
+        for path in (REPO / top).rglob('*.py'):
+            rel = path.relative_to(REPO).as_posix()
+            if pattern.search(path.read_text()) and not rel.startswith(allowed):
+                offenders.append(rel)
+    assert not offenders, f'{lib} imported outside {allowed}: {offenders}'

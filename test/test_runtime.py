@@ -1,0 +1,88 @@
+"""Streaming building blocks: rates, latency percentiles, newest-frame worker, stamp guard."""
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+
+from semfeat_ros.runtime import LatencyStats, LatestWorker, RateMeter, StampGuard
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def test_rate_meter_window() -> None:
+    clock = FakeClock()
+    meter = RateMeter(window_s=2.0, clock=clock)
+    assert meter.rate() == 0.0
+    for _ in range(21):
+        meter.tick()
+        clock.t += 0.1
+    assert abs(meter.rate() - 10.0) < 1e-9
+    clock.t += 5.0
+    assert meter.rate() == 0.0
+
+
+def test_latency_percentiles() -> None:
+    stats = LatencyStats(maxlen=100)
+    assert all(np.isnan(stats.percentiles()))
+    for v in range(1, 101):
+        stats.add(v / 1000)
+    stats.add(float('nan'))
+    p50, p95 = stats.percentiles()
+    assert len(stats) == 100
+    assert abs(p50 - 0.0505) < 1e-9 and abs(p95 - 0.09505) < 1e-9
+
+
+def test_latest_worker_keeps_only_newest_and_counts_drops() -> None:
+    gate = threading.Event()
+    seen: list[int] = []
+
+    def work(item: int) -> None:
+        gate.wait(5)
+        seen.append(item)
+
+    worker = LatestWorker(work, on_error=lambda exc: None)
+    try:
+        assert worker.submit(0)
+        time.sleep(0.05)  # 0 is now running and blocked on the gate
+        results = [worker.submit(i) for i in range(1, 6)]
+        assert results == [True, False, False, False, False]
+        assert worker.dropped == 4
+        gate.set()
+        assert worker.wait_idle(5)
+        assert seen == [0, 5]
+    finally:
+        worker.stop()
+
+
+def test_latest_worker_survives_errors() -> None:
+    errors: list[BaseException] = []
+    done: list[int] = []
+
+    def work(item: int) -> None:
+        if item == 1:
+            raise ValueError('bad frame')
+        done.append(item)
+
+    worker = LatestWorker(work, on_error=errors.append)
+    try:
+        worker.submit(1)
+        assert worker.wait_idle(5)
+        worker.submit(2)
+        assert worker.wait_idle(5)
+    finally:
+        worker.stop()
+    assert done == [2] and len(errors) == 1 and 'bad frame' in str(errors[0])
+
+
+def test_stamp_guard() -> None:
+    guard = StampGuard()
+    assert [guard.check(s) for s in (10, 20, 20, 5, 6)] == [
+        'ok', 'ok', 'duplicate', 'backwards', 'ok']
