@@ -8,7 +8,7 @@ README, so the three cannot drift apart.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields, MISSING
+from dataclasses import MISSING, dataclass, field, fields
 import typing
 from typing import Any, TypeVar
 
