@@ -1,0 +1,119 @@
+"""The feature front end shared by feature_node and the offline tools (no rclpy).
+
+A decoded camera frame and its camera model go in; keypoints, descriptors, labels, unit bearings
+and the class-id mask come out. The node and ``semfeat-features`` call the same code, so a live
+run and an offline run on the same bag agree.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import cv2
+import numpy as np
+
+from semfeat_ros.camera import CameraModel
+from semfeat_ros.labels import LabelSet
+
+if TYPE_CHECKING:  # torch is imported lazily by the model package
+    from semfeat_ros.model.extractor import Features
+
+
+class FrontendError(ValueError):
+    """A frame cannot be processed (e.g. its size does not match the CameraInfo)."""
+
+
+@dataclass(frozen=True)
+class FrontendConfig:
+    """Settings of the front end (see the FeatureExtractor conf for details)."""
+
+    weights: str | None = None  # None: the shipped weights
+    num_threads: int = 2  # torch intra-op threads
+    max_keypoints: int = 1000  # top-k by score
+    score_threshold: float = 0.05  # minimum heatmap score
+    nms_radius: int = 3  # px at network resolution
+    border: int = 4  # px at network resolution, from the image and image-circle border
+    drop_classes: tuple[str, ...] = ('sky', 'car', 'pedestrian')  # keypoints never returned
+    mask_resolution: str = 'input'  # 'seg' (1/4 network), 'network' or 'input'
+    resize_max: int = 640  # px, longer side of the network input
+    size_tolerance: float = 0.01  # relative aspect mismatch tolerated between image and camera
+
+
+@dataclass
+class FrontendResult:
+    """Features of one frame with bearings (N, 3) in the optical frame (NaN-free)."""
+
+    features: Features
+    bearings: np.ndarray | None
+
+    @property
+    def mask(self) -> np.ndarray:
+        return self.features.mask
+
+    def overlay(self, image: np.ndarray, labels: LabelSet, alpha: float = 0.45) -> np.ndarray:
+        """RGB image blended with the class colours of the mask (input resolution)."""
+        rgb = image if image.ndim == 3 else np.repeat(image[:, :, None], 3, axis=2)
+        h, w = rgb.shape[:2]
+        mask = self.features.mask
+        if mask.shape != (h, w):
+            mask = cv2.resize(mask, (w, h), interpolation=cv2.INTER_NEAREST)
+        return cv2.addWeighted(rgb, 1.0 - alpha, labels.colorize(mask), alpha, 0.0)
+
+
+class SemanticFrontend:
+    """Runs the shipped multi-task network on frames of one camera."""
+
+    def __init__(self, conf: FrontendConfig | None = None):
+        from semfeat_ros.model import FeatureExtractor  # torch stays out of rclpy-only imports
+
+        self.conf = conf = conf or FrontendConfig()
+        self.extractor = FeatureExtractor(conf.weights, {
+            'max_keypoints': conf.max_keypoints, 'detection_threshold': conf.score_threshold,
+            'nms_radius': conf.nms_radius, 'remove_borders': conf.border,
+            'drop_classes': list(conf.drop_classes), 'num_threads': conf.num_threads,
+            'mask_resolution': conf.mask_resolution, 'resize_max': conf.resize_max})
+        self.last_count = 0
+        self._scaled: dict[tuple, CameraModel] = {}
+
+    def describe(self) -> str:
+        return (f'SemFeatNet ({sum(p.numel() for p in self.extractor.model.parameters())} '
+                f'parameters), input resized to a longer side of {self.conf.resize_max} px')
+
+    def camera_for(self, camera: CameraModel, width: int, height: int) -> CameraModel:
+        """``camera`` rescaled to a ``width x height`` frame (same lens, resized image).
+
+        Raises FrontendError when the aspect ratios disagree (a wrong CameraInfo).
+        """
+        if (camera.width, camera.height) == (width, height):
+            return camera
+        key = (camera, width, height)
+        if key not in self._scaled:
+            ratio = (camera.width / camera.height) / (width / height)
+            if abs(ratio - 1.0) > self.conf.size_tolerance:
+                raise FrontendError(
+                    f'image is {width}x{height} px but CameraInfo describes '
+                    f'{camera.width}x{camera.height} px (different aspect ratio)')
+            self._scaled = {key: camera.scaled(width, height)}
+        return self._scaled[key]
+
+    def process(self, image: np.ndarray, camera: CameraModel | None) -> FrontendResult:
+        """Features of an (H, W, 3) RGB or (H, W) uint8 frame; bearings when ``camera`` is set.
+
+        Keypoints whose pixel has no bearing (outside the image circle) are removed.
+        """
+        if image.ndim not in (2, 3) or image.dtype != np.uint8:
+            raise FrontendError(f'expected a uint8 HxW or HxWx3 image, got {image.dtype} '
+                                f'{image.shape}')
+        h, w = image.shape[:2]
+        cam = self.camera_for(camera, w, h) if camera is not None else None
+        feats = self.extractor.extract(image, camera=cam)
+        bearings = None
+        if cam is not None:
+            bearings = cam.unproject(feats.keypoints.astype(np.float64), check=False)
+            ok = np.isfinite(bearings).all(axis=1)
+            if not ok.all():
+                feats.keypoints, feats.scores = feats.keypoints[ok], feats.scores[ok]
+                feats.descriptors, feats.labels = feats.descriptors[ok], feats.labels[ok]
+                bearings = bearings[ok]
+        self.last_count = len(feats.keypoints)
+        return FrontendResult(features=feats, bearings=bearings)

@@ -1,0 +1,195 @@
+"""feature_node: fisheye frames -> keypoints, descriptors and semantic mask.
+
+Subscribes to the front camera (raw ``Image`` or ``CompressedImage``, by parameter) and its
+``CameraInfo``; runs the multi-task network on the newest frame only, off the subscription
+callback; publishes ``/semfeat/features`` (PointCloud2), ``/semfeat/semantic_mask`` (mono8) and,
+only when subscribed, ``/semfeat/semantic_mask/color`` (rgb8 overlay). ``/diagnostics`` reports
+rates, latency and the frames dropped or rejected.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+import sys
+import threading
+from typing import Any
+
+import rclpy
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
+
+from msg_adapters import camera_info_to_model, features_to_msg, numpy_to_image, stamp_to_ns
+from msg_adapters.errors import MessageError
+from msg_adapters.image import to_rgb_or_mono
+from semfeat_ros.camera import CameraModel
+from semfeat_ros.frontend import FrontendConfig, FrontendError, SemanticFrontend
+from semfeat_ros.labels import load_labels
+from semfeat_ros.nodes.diagnostics import NodeHealth, wall_time
+from semfeat_ros.nodes.params import declare_config, guard_updates, param
+from semfeat_ros.runtime import LatestWorker
+
+
+@dataclass
+class FeatureNodeConfig:
+    """Parameters of feature_node (shipped as config/feature_node.yaml)."""
+
+    input_transport: str = param('raw', 'Camera input: raw sensor_msgs/Image or its '
+                                 'CompressedImage (topic image_topic + "/compressed")',
+                                 choices=('raw', 'compressed'), read_only=True)
+    image_topic: str = param('/camera/front/image_raw', 'Raw image topic', read_only=True)
+    camera_info_topic: str = param('/camera/front/camera_info', 'CameraInfo topic',
+                                   read_only=True)
+    features_topic: str = param('/semfeat/features', 'Output PointCloud2 of keypoints',
+                                read_only=True)
+    mask_topic: str = param('/semfeat/semantic_mask', 'Output mono8 class-id mask (the colour '
+                            'overlay is published on <mask_topic>/color)', read_only=True)
+    input_reliability: str = param('best_effort', 'QoS of the image inputs: best_effort (sensor '
+                                   'data) or reliable (bag replay without drops at the source)',
+                                   choices=('best_effort', 'reliable'), read_only=True)
+    input_depth: int = param(2, 'QoS history depth of the image inputs', range=(1, 100),
+                             read_only=True)
+    require_camera_info: bool = param(True, 'Reject frames until a CameraInfo has arrived '
+                                      '(the image circle and bearings need it)')
+    fov_deg: float = param(190.0, 'Field of view of the lens (deg, full cone), not in '
+                           'CameraInfo', range=(60.0, 240.0))
+    weights: str = param('', 'Network weights (.safetensors); empty = shipped weights',
+                         read_only=True)
+    num_threads: int = param(2, 'torch intra-op threads', range=(1, 64), read_only=True)
+    max_keypoints: int = param(1000, 'Keypoints kept per frame (top-k by score)',
+                               range=(16, 8192), read_only=True)
+    score_threshold: float = param(0.05, 'Minimum heatmap score of a keypoint',
+                                   range=(0.0, 1.0), read_only=True)
+    nms_radius: int = param(3, 'Non-maximum suppression radius (network px)', range=(0, 16),
+                            read_only=True)
+    border: int = param(4, 'Keypoints closer than this to the image or image-circle border are '
+                        'dropped (network px)', range=(0, 64), read_only=True)
+    drop_classes: list[str] = param(['sky', 'car', 'pedestrian'],
+                                    'Classes whose keypoints are discarded', read_only=True)
+    resize_max: int = param(640, 'Longer side of the network input (px); frames are resized',
+                            range=(64, 4096), read_only=True)
+    mask_resolution: str = param('input', 'Size of the published mask: input image, network '
+                                 'input, or the 1/4-resolution segmentation grid',
+                                 choices=('input', 'network', 'seg'), read_only=True)
+    max_image_pixels: int = param(50_000_000, 'Frames with more pixels are rejected',
+                                  range=(1, 500_000_000), read_only=True)
+    diagnostics_period_s: float = param(1.0, 'Period of /diagnostics (s)', range=(0.1, 60.0),
+                                        read_only=True)
+
+
+class FeatureNode(Node):
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__('feature_node', **kwargs)
+        self.conf = declare_config(self, FeatureNodeConfig)
+        guard_updates(self, FeatureNodeConfig)
+        c = self.conf
+        self.health = NodeHealth(self)
+        self.labels = load_labels()
+        self.frontend = SemanticFrontend(FrontendConfig(
+            weights=c.weights or None, num_threads=c.num_threads, max_keypoints=c.max_keypoints,
+            score_threshold=c.score_threshold, nms_radius=c.nms_radius, border=c.border,
+            drop_classes=tuple(c.drop_classes), mask_resolution=c.mask_resolution,
+            resize_max=c.resize_max))
+        self._camera: CameraModel | None = None
+        self._camera_lock = threading.Lock()
+        self._worker: LatestWorker = LatestWorker(self._process, self.health.on_error,
+                                                  name='feature-inference')
+
+        qos_in = QoSProfile(depth=c.input_depth, reliability=(
+            ReliabilityPolicy.BEST_EFFORT if c.input_reliability == 'best_effort'
+            else ReliabilityPolicy.RELIABLE), history=qos_profile_sensor_data.history,
+            durability=qos_profile_sensor_data.durability)
+        if c.input_transport == 'raw':
+            self.create_subscription(Image, c.image_topic, self._on_image, qos_in)
+        else:
+            self.create_subscription(CompressedImage, c.image_topic + '/compressed',
+                                     self._on_image, qos_in)
+        self.create_subscription(CameraInfo, c.camera_info_topic, self._on_camera_info, 10)
+        self.pub_features = self.create_publisher(PointCloud2, c.features_topic, 10)
+        self.pub_mask = self.create_publisher(Image, c.mask_topic, 10)
+        self.pub_color = self.create_publisher(Image, c.mask_topic + '/color', 10)
+        self.create_timer(c.diagnostics_period_s, self._publish_diagnostics)
+        self.get_logger().info(
+            f'feature_node ready: {c.input_transport} input on {c.image_topic}, '
+            f'network {self.frontend.describe()}')
+
+    def _on_camera_info(self, msg: CameraInfo) -> None:
+        try:
+            camera = camera_info_to_model(msg, fov_deg=self.get_parameter('fov_deg').value)
+        except MessageError as exc:
+            self.health.on_reject(f'camera_info: {exc}')
+            return
+        with self._camera_lock:
+            self._camera = camera
+
+    def _on_image(self, msg: Image | CompressedImage) -> None:
+        self.health.on_input()
+        if not self._worker.submit(msg):
+            self.health.counters.dropped += 1
+
+    def _process(self, msg: Image | CompressedImage) -> None:
+        t0 = wall_time()
+        try:
+            stamp_ns = stamp_to_ns(msg.header.stamp)
+            image = to_rgb_or_mono(msg, max_pixels=self.conf.max_image_pixels)
+        except MessageError as exc:
+            self.health.on_reject(f'image: {exc}')
+            return
+        with self._camera_lock:
+            camera = self._camera
+        if camera is None and self.get_parameter('require_camera_info').value:
+            self.health.on_reject('no CameraInfo received yet on '
+                                  f'{self.conf.camera_info_topic}; frame skipped')
+            return
+        try:
+            result = self.frontend.process(image, camera)
+        except FrontendError as exc:
+            self.health.on_reject(str(exc))
+            return
+        frame_id = msg.header.frame_id
+        feats = result.features
+        try:
+            features_msg = features_to_msg(
+                feats.keypoints, feats.scores, feats.labels, feats.descriptors,
+                stamp_ns=stamp_ns, frame_id=frame_id, msg_cls=PointCloud2)
+        except MessageError as exc:  # e.g. non-finite network output on a degenerate frame
+            self.health.on_reject(f'features: {exc}')
+            return
+        self.pub_features.publish(features_msg)
+        self.pub_mask.publish(numpy_to_image(result.mask, 'mono8', stamp_ns=stamp_ns,
+                                             frame_id=frame_id, msg_cls=Image))
+        if self.pub_color.get_subscription_count() > 0:
+            overlay = result.overlay(image, self.labels)
+            self.pub_color.publish(numpy_to_image(overlay, 'rgb8', stamp_ns=stamp_ns,
+                                                  frame_id=frame_id, msg_cls=Image))
+        self.health.on_output(stamp_ns, wall_time() - t0)
+
+    def _publish_diagnostics(self) -> None:
+        self.health.counters.dropped = self._worker.dropped
+        self.health.extra['keypoints_last'] = str(self.frontend.last_count)
+        self.health.publish()
+
+    def destroy_node(self) -> None:
+        self._worker.stop()
+        super().destroy_node()
+
+
+def main(args: list[str] | None = None) -> None:
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = FeatureNode()
+        executor = MultiThreadedExecutor(num_threads=2)
+        executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main(sys.argv)
+

@@ -1,0 +1,199 @@
+"""feature_node in-process with a real executor: outputs, header stamps, bad-input barrage.
+
+The wiring tests use an untrained network written to tmp_path (they check the node, not the
+model's quality); the shipped weights are exercised by the replay tests.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+import threading
+import time
+
+import numpy as np
+import pytest
+import rclpy
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
+
+from msg_adapters import (
+    features_from_msg,
+    image_to_numpy,
+    model_to_camera_info,
+    numpy_to_compressed,
+    numpy_to_image,
+)
+from semfeat_ros.camera import load_camera_yaml
+from semfeat_ros.labels import load_labels
+from semfeat_ros.model.semfeatnet import SemFeatNet
+from semfeat_ros.model.weights_io import save_weights
+
+W, H = 320, 256
+
+
+@pytest.fixture(scope='module')
+def untrained_weights(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    import torch
+
+    torch.manual_seed(0)
+    return save_weights(SemFeatNet(), tmp_path_factory.mktemp('w') / 'untrained.safetensors',
+                        {'class_names': list(load_labels().names), 'input_size': [W, H]})
+
+
+def frame(seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    img = (rng.random((H // 8, W // 8, 3)) * 255).astype(np.uint8)
+    return np.ascontiguousarray(np.kron(img, np.ones((8, 8, 1), np.uint8)))
+
+
+class Harness:
+    """feature_node plus a probe node on one executor, spinning in a thread."""
+
+    def __init__(self, weights: Path, transport: str = 'raw'):
+        from semfeat_ros.nodes.feature_node import FeatureNode
+
+        overrides = [Parameter('weights', value=str(weights)),
+                     Parameter('input_transport', value=transport),
+                     Parameter('input_reliability', value='reliable'),
+                     Parameter('input_depth', value=50),
+                     Parameter('diagnostics_period_s', value=0.2)]
+        self.node = FeatureNode(parameter_overrides=overrides)
+        self.probe = Node('probe')
+        self.features: list[PointCloud2] = []
+        self.masks: list[Image] = []
+        self.colors: list[Image] = []
+        self.probe.create_subscription(PointCloud2, '/semfeat/features', self.features.append,
+                                       50)
+        self.probe.create_subscription(Image, '/semfeat/semantic_mask', self.masks.append, 50)
+        qos = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+        topic = '/camera/front/image_raw' + ('/compressed' if transport == 'compressed' else '')
+        self.pub_img = self.probe.create_publisher(
+            CompressedImage if transport == 'compressed' else Image, topic, qos)
+        self.pub_info = self.probe.create_publisher(CameraInfo, '/camera/front/camera_info', 10)
+        self.executor = MultiThreadedExecutor(num_threads=3)
+        self.executor.add_node(self.node)
+        self.executor.add_node(self.probe)
+        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.thread.start()
+        cam, _ = load_camera_yaml()
+        self.camera = cam.scaled(W, H)
+
+    def wait(self, cond, timeout: float = 30.0) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if cond():
+                return True
+            time.sleep(0.02)
+        return cond()
+
+    def send_info(self, stamp_ns: int = 1) -> None:
+        self.pub_info.publish(model_to_camera_info(
+            self.camera, stamp_ns=stamp_ns, frame_id='camera_front_optical', msg_cls=CameraInfo))
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.probe.destroy_node()
+
+
+@pytest.fixture
+def ros_context(isolated_ros):
+    rclpy.init()
+    yield
+    rclpy.try_shutdown()
+
+
+@pytest.mark.ros_domain(76)
+def test_outputs_and_stamps(ros_context, untrained_weights: Path) -> None:
+    h = Harness(untrained_weights)
+    try:
+        assert h.wait(lambda: h.pub_info.get_subscription_count() > 0
+                      and h.pub_img.get_subscription_count() > 0)
+        h.send_info()
+        time.sleep(0.2)
+        stamps = []
+        for i in range(3):
+            stamp = 1_700_000_000_000_000_000 + i * 100_000_000
+            stamps.append(stamp)
+            h.pub_img.publish(numpy_to_image(frame(i), 'rgb8', stamp_ns=stamp,
+                                             frame_id='camera_front_optical', msg_cls=Image))
+            assert h.wait(lambda n=i: len(h.features) > n), 'no features published'
+        assert h.wait(lambda: len(h.masks) >= 3)
+        got = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in h.features]
+        assert got == stamps
+        assert all(m.header.frame_id == 'camera_front_optical' for m in h.features)
+        feats = features_from_msg(h.features[-1])
+        assert feats.descriptors.shape[1] == 64
+        if len(feats.keypoints):
+            np.testing.assert_allclose(np.linalg.norm(feats.descriptors, axis=1), 1.0,
+                                       atol=1e-4)
+            assert (feats.keypoints >= 0).all()
+            assert (feats.keypoints <= np.array([W - 1, H - 1])).all()
+            assert not np.isin(feats.labels, [16, 17, 18]).any()  # sky and dynamic dropped
+        mask = image_to_numpy(h.masks[-1])
+        assert mask.shape == (H, W) and mask.max() < 19
+        assert h.node.health.counters.rejected == 0
+    finally:
+        h.close()
+
+
+@pytest.mark.ros_domain(77)
+def test_bad_input_barrage_keeps_node_alive(ros_context, untrained_weights: Path) -> None:
+    h = Harness(untrained_weights)
+    try:
+        assert h.wait(lambda: h.pub_img.get_subscription_count() > 0)
+        good = numpy_to_image(frame(0), 'rgb8', stamp_ns=10, frame_id='cam', msg_cls=Image)
+        # No CameraInfo yet: rejected, counted.
+        h.pub_img.publish(good)
+        assert h.wait(lambda: h.node.health.counters.rejected >= 1)
+        h.send_info()
+        time.sleep(0.2)
+        bad: list[Image] = []
+        m = Image(height=H, width=W, encoding='rgb8', step=W * 3 - 1, data=bytes(H * W * 3))
+        bad.append(m)  # step too small
+        bad.append(Image(height=H, width=W, encoding='rgb8', step=W * 3,
+                         data=bytes(W * 3 * 10)))  # truncated
+        bad.append(Image(height=4, width=4, encoding='weird42', step=16, data=bytes(64)))
+        bad.append(Image(height=100000, width=100000, encoding='mono8', step=100000,
+                         data=bytes(16)))  # absurd header
+        bad.append(numpy_to_image(frame(1)[:200, :100], 'rgb8', stamp_ns=11, frame_id='cam',
+                                  msg_cls=Image))  # size/aspect mismatch with CameraInfo
+        for i, msg in enumerate(bad):
+            h.pub_img.publish(msg)
+            assert h.wait(lambda n=i: h.node.health.counters.rejected >= 2 + n), msg.encoding
+        # A NaN CameraInfo is rejected and the previous camera stays in use.
+        nan_info = model_to_camera_info(h.camera, stamp_ns=1, frame_id='c', msg_cls=CameraInfo)
+        nan_info.k[0] = float('nan')
+        h.pub_info.publish(nan_info)
+        assert h.wait(lambda: h.node.health.counters.rejected >= 2 + len(bad))
+        before = len(h.features)
+        h.pub_img.publish(good)
+        assert h.wait(lambda: len(h.features) > before), 'next good frame not processed'
+        status = h.node.health.status()
+        values = {kv.key: kv.value for kv in status.values}
+        assert int(values['errors_rejected']) >= 2 + len(bad)
+        assert values['last_error']
+    finally:
+        h.close()
+
+
+@pytest.mark.ros_domain(78)
+def test_compressed_input_and_corrupt_jpeg(ros_context, untrained_weights: Path) -> None:
+    h = Harness(untrained_weights, transport='compressed')
+    try:
+        assert h.wait(lambda: h.pub_img.get_subscription_count() > 0)
+        h.send_info()
+        time.sleep(0.2)
+        msg = numpy_to_compressed(frame(2), 'jpeg', stamp_ns=5, frame_id='cam',
+                                  msg_cls=CompressedImage)
+        corrupt = numpy_to_compressed(frame(3), 'jpeg', stamp_ns=6, frame_id='cam',
+                                      msg_cls=CompressedImage)
+        corrupt.data = bytes(corrupt.data)[: len(corrupt.data) // 3]
+        h.pub_img.publish(corrupt)
+        assert h.wait(lambda: h.node.health.counters.rejected >= 1)
+        h.pub_img.publish(msg)
+        assert h.wait(lambda: len(h.features) >= 1)
+    finally:
+        h.close()
