@@ -1,0 +1,210 @@
+"""matcher_node: sequential matching of /semfeat/features into persistent tracks.
+
+Each frame's features are matched against the previous frame (mutual nearest neighbour, ratio
+test, semantic consistency), verified geometrically on unit bearings of the fisheye model, and
+published as ``/semfeat/tracks`` (PointCloud2: u, v, bx, by, bz, label, track_id, age, score).
+The debug view ``/semfeat/matches/image`` (previous | current, inliers green, rejected red) is
+drawn only while someone subscribes to it.
+"""
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass
+import sys
+from typing import Any
+
+import numpy as np
+import rclpy
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
+
+from msg_adapters import (
+    camera_info_to_model,
+    features_from_msg,
+    numpy_to_image,
+    tracks_to_msg,
+)
+from msg_adapters.errors import MessageError
+from msg_adapters.image import to_rgb_or_mono
+from semfeat_ros.camera import CameraModel
+from semfeat_ros.matching.draw import draw_track_result
+from semfeat_ros.matching.errors import MatchingError
+from semfeat_ros.matching.sequential import SequentialMatcher
+from semfeat_ros.nodes.diagnostics import NodeHealth, wall_time
+from semfeat_ros.nodes.params import declare_config, guard_updates, param
+from semfeat_ros.pipeline import frame_features
+from semfeat_ros.runtime import StampGuard
+
+
+@dataclass
+class MatcherNodeConfig:
+    """Parameters of matcher_node (shipped as config/matcher_node.yaml)."""
+
+    features_topic: str = param('/semfeat/features', 'Input features (feature_node output)',
+                                read_only=True)
+    camera_info_topic: str = param('/camera/front/camera_info', 'CameraInfo topic',
+                                   read_only=True)
+    tracks_topic: str = param('/semfeat/tracks', 'Output PointCloud2 of tracked keypoints',
+                              read_only=True)
+    matches_image_topic: str = param('/semfeat/matches/image', 'Debug view of the matches '
+                                     '(drawn only while subscribed)', read_only=True)
+    image_topic: str = param('/camera/front/image_raw', 'Camera images for the debug view '
+                             '(decoded only while the debug view is subscribed)',
+                             read_only=True)
+    input_transport: str = param('raw', 'Transport of image_topic for the debug view',
+                                 choices=('raw', 'compressed'), read_only=True)
+    input_reliability: str = param('reliable', 'QoS reliability of the features input',
+                                   choices=('best_effort', 'reliable'), read_only=True)
+    fov_deg: float = param(190.0, 'Field of view of the lens (deg, full cone)',
+                           range=(60.0, 240.0))
+    ratio_threshold: float = param(0.9, 'Lowe ratio test (best <= ratio * second best)',
+                                   range=(0.0, 1.0), read_only=True)
+    min_similarity: float = param(0.5, 'Minimum cosine similarity of a match',
+                                  range=(-1.0, 1.0), read_only=True)
+    semantic: bool = param(True, 'Match only keypoints of compatible classes', read_only=True)
+    threshold_rad: float = param(0.01, 'RANSAC inlier threshold: angle between a bearing and '
+                                 'its epipolar plane (rad)', range=(1e-4, 0.2), read_only=True)
+    min_inliers: int = param(12, 'Fewer verified matches fail the frame', range=(5, 10000),
+                             read_only=True)
+    max_missed: int = param(2, 'A track ends after this many frames without a match',
+                            range=(0, 100), read_only=True)
+    reacquire_window: int = param(2, 'Frames whose lost tracks are searched again',
+                                  range=(0, 10), read_only=True)
+    max_time_gap_s: float = param(2.0, 'A larger gap between frames restarts tracking (s)',
+                                  range=(0.0, 3600.0), read_only=True)
+    seed: int = param(0, 'Seed of the RANSAC sampler (deterministic replays)',
+                      range=(0, 2**31 - 1), read_only=True)
+    diagnostics_period_s: float = param(1.0, 'Period of /diagnostics (s)', range=(0.1, 60.0),
+                                        read_only=True)
+
+
+def matcher_conf(c: MatcherNodeConfig) -> dict[str, Any]:
+    """The SequentialMatcher conf for the node parameters."""
+    return {
+        'matching': {'ratio_threshold': c.ratio_threshold, 'min_similarity': c.min_similarity},
+        'semantic': {'enabled': c.semantic},
+        'verification': {'threshold_rad': c.threshold_rad, 'min_inliers': c.min_inliers,
+                         'seed': c.seed},
+        'tracking': {'max_missed': c.max_missed, 'reacquire_window': c.reacquire_window,
+                     'max_time_gap_s': c.max_time_gap_s},
+    }
+
+
+class MatcherNode(Node):
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__('matcher_node', **kwargs)
+        self.conf = c = declare_config(self, MatcherNodeConfig)
+        guard_updates(self, MatcherNodeConfig)
+        self.health = NodeHealth(self)
+        self.matcher = SequentialMatcher(matcher_conf(c))
+        self.stamps = StampGuard()
+        self._camera: CameraModel | None = None
+        self._camera_frame = ''
+        self._images: OrderedDict[int, Image | CompressedImage] = OrderedDict()
+        self._last_image: np.ndarray | None = None
+        qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE
+                         if c.input_reliability == 'reliable' else ReliabilityPolicy.BEST_EFFORT)
+        self.create_subscription(PointCloud2, c.features_topic, self._on_features, qos)
+        self.create_subscription(CameraInfo, c.camera_info_topic, self._on_camera_info, 10)
+        if c.input_transport == 'raw':
+            self.create_subscription(Image, c.image_topic, self._on_image, 2)
+        else:
+            self.create_subscription(CompressedImage, c.image_topic + '/compressed',
+                                     self._on_image, 2)
+        self.pub_tracks = self.create_publisher(PointCloud2, c.tracks_topic, 10)
+        self.pub_debug = self.create_publisher(Image, c.matches_image_topic, 2)
+        self.create_timer(c.diagnostics_period_s, self._publish_diagnostics)
+        self.get_logger().info(f'matcher_node ready: {c.features_topic} -> {c.tracks_topic}')
+
+    def _on_camera_info(self, msg: CameraInfo) -> None:
+        try:
+            self._camera = camera_info_to_model(msg, fov_deg=self.get_parameter('fov_deg').value)
+            self._camera_frame = msg.header.frame_id
+        except MessageError as exc:
+            self.health.on_reject(f'camera_info: {exc}')
+
+    def _on_image(self, msg: Image | CompressedImage) -> None:
+        if self.pub_debug.get_subscription_count() == 0:
+            self._images.clear()
+            return
+        stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+        self._images[stamp] = msg  # decoded only if a frame with this stamp gets drawn
+        while len(self._images) > 8:
+            self._images.popitem(last=False)
+
+    def _on_features(self, msg: PointCloud2) -> None:
+        self.health.on_input()
+        t0 = wall_time()
+        try:
+            feats = features_from_msg(msg)
+        except MessageError as exc:
+            self.health.on_reject(f'features: {exc}')
+            return
+        if self._camera is None:
+            self.health.on_reject('no CameraInfo received yet; features skipped')
+            return
+        order = self.stamps.check(feats.stamp_ns)
+        if order == 'duplicate':
+            self.health.on_reject(f'features with a repeated stamp {feats.stamp_ns} ns skipped')
+            return
+        if order == 'backwards':
+            self.get_logger().warning('time went backwards (bag loop?): tracks restarted')
+            self.matcher.reset()
+        try:
+            frame = frame_features(feats.stamp_ns, feats.keypoints, feats.descriptors,
+                                   feats.labels, feats.scores, self._camera, self._camera_frame)
+            result = self.matcher.process(frame)
+            cols = result.columns()
+            out = tracks_to_msg(
+                result.keypoints, result.bearings, cols['label'], cols['track_id'], cols['age'],
+                cols['score'],
+                stamp_ns=feats.stamp_ns, frame_id=feats.frame_id, msg_cls=PointCloud2)
+        except (MatchingError, MessageError) as exc:
+            self.health.on_reject(f'matching: {exc}')
+            return
+        self.pub_tracks.publish(out)
+        self.health.on_output(feats.stamp_ns, wall_time() - t0)
+        self.health.extra.update({k: str(v) for k, v in result.stats().items()
+                                  if k in ('n_tracks', 'n_matches', 'n_inliers', 'model')})
+        if self.pub_debug.get_subscription_count() > 0:
+            self._publish_debug(result, feats.stamp_ns, feats.frame_id)
+
+    def _publish_debug(self, result: Any, stamp_ns: int, frame_id: str) -> None:
+        image = None
+        raw = self._images.pop(stamp_ns, None)
+        if raw is not None:
+            try:
+                image = to_rgb_or_mono(raw)
+            except MessageError:
+                image = None
+        cam = self._camera
+        view = draw_track_result(result, self._last_image, image,
+                                 size=(cam.width, cam.height) if cam else None)
+        self._last_image = image
+        self.pub_debug.publish(numpy_to_image(view, 'rgb8', stamp_ns=stamp_ns, frame_id=frame_id,
+                                              msg_cls=Image))
+
+    def _publish_diagnostics(self) -> None:
+        self.health.publish()
+
+
+def main(args: list[str] | None = None) -> None:
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = MatcherNode()
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main(sys.argv)
