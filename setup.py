@@ -9,7 +9,11 @@ PACKAGE = 'semfeat_ros'
 
 # Console scripts: the three nodes (``ros2 run semfeat_ros <node>``) and the offline tools.
 # ament_python installs all of them into lib/semfeat_ros (see setup.cfg), where ros2 run looks.
-CONSOLE_SCRIPTS: list[str] = []
+CONSOLE_SCRIPTS = [
+    'feature_node = semfeat_ros.nodes.feature_node:main',
+    'matcher_node = semfeat_ros.nodes.matcher_node:main',
+    'semfeat-eval = semfeat_ros.tools.eval:cli',
+]
 
 setup(
     name=PACKAGE,

@@ -1,0 +1,226 @@
+"""``semfeat-eval``: feature-matching evaluation (the paper's Table 1 protocol and more).
+
+Modes (subcommands)::
+
+    semfeat-eval transforms (--images DIR | --bag BAG [--topic T]) --pairs N --seed S --out DIR
+    semfeat-eval homography --dataset DIR --out DIR
+    semfeat-eval sequence (--bag BAG | --shard NPZ) --stride K --out DIR
+
+Each writes results.json, results.md (Table 1 layout + extra columns), bar charts and match
+figures into ``--out``. Metrics are defined in docs/METRICS.md. Bad input gives one line on
+stderr and exit status 1 (2 for a bad command line).
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+import sys
+
+from semfeat_ros.evaluation.errors import EvalError
+from semfeat_ros.evaluation.methods import method_names
+from semfeat_ros.evaluation.pipeline import DEFAULT_METHODS, EvalConf
+from semfeat_ros.evaluation.transforms import TransformConf
+
+PROG = 'semfeat-eval'
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (``semfeat-eval: error: ...``) and exit status 2."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(2, f'{PROG}: error: {message}\n')
+
+
+def _methods(text: str) -> tuple[str, ...]:
+    names = tuple(n.strip() for n in text.split(',') if n.strip())
+    known = method_names()
+    unknown = [n for n in names if n not in known]
+    if unknown or not names:
+        raise argparse.ArgumentTypeError(
+            f'unknown method(s) {", ".join(unknown) or "(none given)"}; known: '
+            + ', '.join(known))
+    return names
+
+
+def _positive_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'expected a number, got {text!r}') from None
+    if not v > 0:
+        raise argparse.ArgumentTypeError(f'expected a value > 0, got {text}')
+    return v
+
+
+def build_parser() -> argparse.ArgumentParser:
+    common = argparse.ArgumentParser(add_help=False)
+    g = common.add_argument_group('common options')
+    g.add_argument('--out', type=Path, required=True, help='output folder (created)')
+    g.add_argument('--methods', type=_methods, default=DEFAULT_METHODS,
+                   help='comma-separated methods (default: all: ' + ','.join(DEFAULT_METHODS)
+                   + ')')
+    g.add_argument('--max-features', type=int, default=1000,
+                   help='keypoints per image of every detector (default 1000)')
+    g.add_argument('--eps', type=_positive_float, default=3.0,
+                   help='correctness threshold eps (px, default 3)')
+    g.add_argument('--ransac-px', type=_positive_float, default=3.0,
+                   help='geometric verification threshold (px, default 3)')
+    g.add_argument('--weights', type=Path, default=None,
+                   help='network weights (default: the shipped semfeat_ros/weights)')
+    g.add_argument('--resize-max', type=int, default=None,
+                   help="network input's longer side (px; default: the extractor's 640)")
+    g.add_argument('--figures', type=int, default=3,
+                   help='match figures per method: the first N pairs (default 3)')
+    g.add_argument('--seed', type=int, default=0, help='random seed (default 0)')
+    g.add_argument('--no-progress', action='store_true', help='no progress bar')
+
+    parser = _Parser(prog=PROG, description=__doc__.split('\n\n')[0],
+                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest='mode', required=True, parser_class=_Parser)
+
+    t = sub.add_parser('transforms', parents=[common],
+                       help="paper's protocol: random rotation/translation/scale/homography")
+    src = t.add_mutually_exclusive_group(required=True)
+    src.add_argument('--images', type=Path, help='folder of JPG/PNG/PPM/PGM images')
+    src.add_argument('--bag', type=Path, help='rosbag2 with an Image/CompressedImage topic')
+    t.add_argument('--topic', default=None, help='image topic of --bag (default: the only one)')
+    t.add_argument('--pairs', type=int, default=48, help='number of pairs (default 48)')
+    t.add_argument('--camera', type=Path, default=None,
+                   help='calibration YAML: its image circle is the valid region')
+    t.add_argument('--distortion-model', default=None,
+                   help='override the YAML distortion_model (e.g. equidistant)')
+    t.add_argument('--fov-deg', type=_positive_float, default=None,
+                   help='lens field of view (deg) for the image circle of --camera')
+    t.add_argument('--image-circle', choices=('auto', 'none', 'camera'), default='auto',
+                   help='valid region: estimated from the black border (auto, default), whole '
+                   'frame (none) or from --camera')
+    t.add_argument('--margin', type=int, default=8,
+                   help='px removed along the valid region border (default 8)')
+    t.add_argument('--labels', type=Path, default=None,
+                   help='folder of <stem>.png mono8 GT class ids (segmentation metrics)')
+    t.add_argument('--gt-keypoints', type=Path, default=None,
+                   help='folder of <stem>.npy/.txt GT keypoints (u v px per row)')
+    t.add_argument('--max-rotation', type=float, default=30.0, help='deg (default 30)')
+    t.add_argument('--max-translation', type=float, default=15.0, help='px (default 15)')
+    t.add_argument('--min-scale', type=float, default=0.8, help='(default 0.8)')
+    t.add_argument('--max-scale', type=float, default=1.2, help='(default 1.2)')
+    t.add_argument('--max-perspective', type=float, default=0.1,
+                   help='perspective bound (default 0.1, see docs/METRICS.md)')
+
+    h = sub.add_parser('homography', parents=[common],
+                       help='Oxford/HPatches sequences (img1..imgN + H1to{k}p)')
+    h.add_argument('--dataset', type=Path, required=True,
+                   help='a sequence folder or a folder of sequences')
+    h.add_argument('--max-pairs', type=int, default=None, help='evaluate at most N pairs')
+    h.add_argument('--camera', type=Path, default=None,
+                   help='calibration YAML: its image circle is the valid region')
+    h.add_argument('--image-circle', choices=('auto', 'none', 'camera'), default='none',
+                   help='valid region (default none: whole frame)')
+    h.add_argument('--margin', type=int, default=0, help='px removed along the border')
+    h.add_argument('--gt-keypoints', type=Path, default=None,
+                   help='folder of <sequence>.npy/.txt GT keypoints of image 1')
+
+    s = sub.add_parser('sequence', parents=[common],
+                       help='rendered drive: frames (i, i+K), GT from depth and poses')
+    src = s.add_mutually_exclusive_group(required=True)
+    src.add_argument('--bag', type=Path, help='rosbag2 of a rendered drive')
+    src.add_argument('--shard', type=Path, help='simulator shard (.npz)')
+    s.add_argument('--stride', type=int, default=1, help='frame gap K of a pair (default 1)')
+    s.add_argument('--max-pairs', type=int, default=None, help='evaluate at most N pairs')
+    s.add_argument('--image-topic', default='/camera/front/image_raw')
+    s.add_argument('--depth-topic', default='/ground_truth/depth',
+                   help='range image along the ray (32FC1 m or 16UC1 mm)')
+    s.add_argument('--pose-topic', default='/ground_truth/pose')
+    s.add_argument('--labels-topic', default='/ground_truth/semantic',
+                   help='GT class ids (mono8), used when present')
+    s.add_argument('--camera-info-topic', default='/camera/front/camera_info',
+                   help='CameraInfo, used when present (else --camera)')
+    s.add_argument('--pose-frame', choices=('base_link', 'camera'), default='base_link',
+                   help='the pose topic gives T_map_base (default) or T_map_cam')
+    s.add_argument('--camera', type=Path, default=None,
+                   help='calibration YAML (extrinsic; intrinsics without CameraInfo); '
+                   'default: the shipped config/camera_front.yaml')
+    s.add_argument('--fov-deg', type=_positive_float, default=190.0,
+                   help='lens field of view (deg, default 190)')
+    s.add_argument('--margin', type=int, default=8,
+                   help='px removed along the image-circle border (default 8)')
+    s.add_argument('--gt-keypoints', default='rendered',
+                   help="'rendered' (default: corners of the rendered geometry, the training "
+                   "targets' rule), 'none', or a folder of <frame index>.npy/.txt (u v px)")
+    return parser
+
+
+def _eval_conf(args: argparse.Namespace) -> EvalConf:
+    return EvalConf(methods=tuple(args.methods), eps_px=args.eps, ransac_px=args.ransac_px,
+                    max_features=args.max_features,
+                    weights=None if args.weights is None else str(args.weights),
+                    n_figures=args.figures, seed=args.seed, progress=not args.no_progress,
+                    network_conf={} if args.resize_max is None else
+                    {'resize_max': args.resize_max})
+
+
+def run(args: argparse.Namespace) -> dict:
+    """Dispatch a parsed command line to the mode's ``main(conf, paths)``."""
+    econf = _eval_conf(args)
+    if args.mode == 'transforms':
+        from semfeat_ros.evaluation import run_transforms as mod
+
+        conf = mod.TransformsConf(
+            eval=econf, pairs=args.pairs,
+            transform=TransformConf(args.max_rotation, args.max_translation, args.min_scale,
+                                    args.max_scale, args.max_perspective),
+            image_circle=args.image_circle, mask_margin_px=args.margin,
+            distortion_model=args.distortion_model, fov_deg=args.fov_deg)
+        paths = mod.TransformsPaths(out=args.out, images=args.images, bag=args.bag,
+                                    topic=args.topic, labels=args.labels,
+                                    gt_keypoints=args.gt_keypoints, camera=args.camera)
+        return mod.main(conf, paths)
+    if args.mode == 'homography':
+        from semfeat_ros.evaluation import run_homography as mod
+
+        conf = mod.HomographyConf(eval=econf, image_circle=args.image_circle,
+                                  mask_margin_px=args.margin, max_pairs=args.max_pairs)
+        paths = mod.HomographyPaths(dataset=args.dataset, out=args.out,
+                                    gt_keypoints=args.gt_keypoints, camera=args.camera)
+        return mod.main(conf, paths)
+    from semfeat_ros.evaluation import run_sequence as mod
+
+    topics = mod.SequenceTopics(args.image_topic, args.depth_topic, args.pose_topic,
+                                args.labels_topic or None, args.camera_info_topic or None)
+    conf = mod.SequenceConf(eval=econf, stride=args.stride, max_pairs=args.max_pairs,
+                            topics=topics, pose_frame=args.pose_frame,
+                            mask_margin_px=args.margin, fov_deg=args.fov_deg)
+    paths = mod.SequencePaths(out=args.out, bag=args.bag, shard=args.shard, camera=args.camera,
+                              gt_keypoints=args.gt_keypoints)
+    return mod.main(conf, paths)
+
+
+def _one_line(exc: BaseException) -> str:
+    return ' '.join(str(exc).split()) or type(exc).__name__
+
+
+def cli(argv: list[str] | None = None) -> int:
+    """Console-script entry point; returns the exit status."""
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help (0) or a command-line error (2, already printed)
+        return int(exc.code or 0)
+    if args.figures < 0 or args.max_features < 1:
+        print(f'{PROG}: error: --figures must be >= 0 and --max-features >= 1', file=sys.stderr)
+        return 2
+    try:
+        results = run(args)
+    except (EvalError, FileNotFoundError, NotADirectoryError, ValueError, OSError) as exc:
+        print(f'{PROG}: error: {_one_line(exc)}', file=sys.stderr)
+        return 1
+    from semfeat_ros.evaluation.report import markdown_table
+
+    sys.stdout.write(markdown_table(results))
+    print(f'\nwrote {Path(args.out) / "results.json"}, results.md, charts and '
+          f'{Path(args.out) / "matches"}/')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(cli())
