@@ -13,6 +13,7 @@ CONSOLE_SCRIPTS = [
     'feature_node = semfeat_ros.nodes.feature_node:main',
     'matcher_node = semfeat_ros.nodes.matcher_node:main',
     'semfeat-eval = semfeat_ros.tools.eval:cli',
+    'semfeat-sim = semfeat_ros.tools.sim:cli',
 ]
 
 setup(

@@ -1,0 +1,107 @@
+"""Rigid transforms and the camera pose convention of the simulator.
+
+Frames (REP-103 / REP-105):
+
+* ``map``: z up, metres; x east, y north (ENU).
+* ``base_link``: the vehicle's rear-axle centre at road-surface height; x forward, y left, z up.
+  ``/ground_truth/pose`` is ``T_map_base`` (the pose of base_link in map).
+* ``camera_front_optical``: z forward, x right, y down.
+
+Camera pose convention: ``T_map_cam = T_map_base @ T_base_cam`` where ``T_base_cam`` maps points
+from the optical frame into base_link (the extrinsic of ``config/camera_front.yaml``). A 4x4
+``T_a_b`` maps homogeneous points expressed in frame ``b`` into frame ``a``.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from semfeat_ros.sim.errors import ShapeError
+
+
+def rot_x(a: float) -> np.ndarray:
+    """Rotation matrix about x by ``a`` rad."""
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def rot_y(a: float) -> np.ndarray:
+    """Rotation matrix about y by ``a`` rad."""
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def rot_z(a: float) -> np.ndarray:
+    """Rotation matrix about z by ``a`` rad."""
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def rpy_to_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """ROS fixed-axis roll/pitch/yaw (rad) to a rotation matrix ``Rz(yaw) Ry(pitch) Rx(roll)``."""
+    return rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)
+
+
+def matrix_to_rpy(R: np.ndarray) -> tuple[float, float, float]:
+    """Inverse of :func:`rpy_to_matrix` (rad), valid away from pitch = +-90 deg."""
+    pitch = float(np.arcsin(np.clip(-R[2, 0], -1.0, 1.0)))
+    roll = float(np.arctan2(R[2, 1], R[2, 2]))
+    yaw = float(np.arctan2(R[1, 0], R[0, 0]))
+    return roll, pitch, yaw
+
+
+def make_transform(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """4x4 homogeneous transform from a 3x3 rotation and a translation (m)."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.asarray(t, dtype=np.float64).reshape(3)
+    return T
+
+
+def invert_transform(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid 4x4 transform (no general matrix inverse)."""
+    T = check_transform(T, 'T')
+    Ti = np.eye(4)
+    Ti[:3, :3] = T[:3, :3].T
+    Ti[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+    return Ti
+
+
+def check_transform(T: np.ndarray, name: str) -> np.ndarray:
+    """Validate a 4x4 rigid transform and return it as float64."""
+    arr = np.asarray(T, dtype=np.float64)
+    if arr.shape != (4, 4):
+        raise ShapeError(f'{name}: expected a 4x4 transform, got shape {arr.shape}')
+    if not np.isfinite(arr).all():
+        raise ShapeError(f'{name}: transform contains NaN or inf')
+    return arr
+
+
+def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 transform to (N, 3) points (m)."""
+    return points @ T[:3, :3].T + T[:3, 3]
+
+
+def quaternion_from_matrix(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion ``(x, y, z, w)`` (ROS order) of a rotation matrix, with ``w >= 0``."""
+    m = np.asarray(R, dtype=np.float64)
+    tr = m[0, 0] + m[1, 1] + m[2, 2]
+    if tr > 0:
+        s = 2.0 * np.sqrt(tr + 1.0)
+        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
+    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
+        q = [0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
+    elif m[1, 1] > m[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
+        q = [(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
+    else:
+        s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
+        q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
+    q = np.array(q)
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q
+
+
+def camera_pose(T_map_base: np.ndarray, T_base_cam: np.ndarray) -> np.ndarray:
+    """Camera pose ``T_map_cam = T_map_base @ T_base_cam`` (optical frame in map)."""
+    return check_transform(T_map_base, 'T_map_base') @ check_transform(T_base_cam, 'T_base_cam')
