@@ -14,6 +14,8 @@ CONSOLE_SCRIPTS = [
     'matcher_node = semfeat_ros.nodes.matcher_node:main',
     'semfeat-eval = semfeat_ros.tools.eval:cli',
     'semfeat-sim = semfeat_ros.tools.sim:cli',
+    'semfeat-play = semfeat_ros.tools.play:cli',
+    'semfeat-record = semfeat_ros.tools.record:cli',
 ]
 
 setup(

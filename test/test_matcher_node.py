@@ -137,7 +137,7 @@ def test_track_ids_persist_and_agree_with_ground_truth(harness: Harness) -> None
     assert int(after.track_ids.min()) > max(ids_before)
 
 
-@pytest.mark.ros_domain(80)
+@pytest.mark.ros_domain(90)
 def test_bad_input_and_missing_camera_info(harness: Harness) -> None:
     h = harness
     pts, desc = world()
