@@ -1,0 +1,473 @@
+"""Numpy geometry of the mapping core: SE(3) in GTSAM's conventions, bearings, two-view geometry.
+
+Conventions
+-----------
+* Poses are 4x4 homogeneous matrices ``T_a_b`` mapping points in frame ``b`` to frame ``a`` (m).
+* Tangent vectors are ``xi = (omega, v)`` (rad, m): rotation first, as ``gtsam.Pose3``, with the
+  right perturbation ``T exp(xi)``; covariances of poses use the same order.
+* Bearings are unit vectors (any direction, including beyond 90 degrees off the optical axis).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+_EPS = 1e-12
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """3x3 cross-product matrix of a 3-vector (or (N, 3, 3) for (N, 3))."""
+    v = np.asarray(v, dtype=np.float64)
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
+
+
+def so3_exp(w: np.ndarray) -> np.ndarray:
+    """Rotation matrix of the rotation vector ``w`` (rad)."""
+    w = np.asarray(w, dtype=np.float64)
+    theta = float(np.linalg.norm(w))
+    K = skew(w)
+    if theta < 1e-8:
+        return np.eye(3) + K + 0.5 * K @ K
+    return np.eye(3) + np.sin(theta) / theta * K + (1 - np.cos(theta)) / theta**2 * K @ K
+
+
+def so3_log(R: np.ndarray) -> np.ndarray:
+    """Rotation vector (rad) of a rotation matrix."""
+    R = np.asarray(R, dtype=np.float64)
+    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    theta = float(np.arccos(c))
+    if theta < 1e-8:
+        return 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if np.pi - theta < 1e-5:
+        # Near pi: axis from the largest diagonal entry of (R + I) / 2.
+        B = (R + np.eye(3)) / 2.0
+        i = int(np.argmax(np.diag(B)))
+        axis = B[:, i] / np.sqrt(max(B[i, i], _EPS))
+        return axis / np.linalg.norm(axis) * theta
+    return theta / (2 * np.sin(theta)) * np.array(
+        [R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+
+
+def _left_jacobian(w: np.ndarray) -> np.ndarray:
+    theta = float(np.linalg.norm(w))
+    K = skew(w)
+    if theta < 1e-8:
+        return np.eye(3) + 0.5 * K
+    return (np.eye(3) + (1 - np.cos(theta)) / theta**2 * K
+            + (theta - np.sin(theta)) / theta**3 * K @ K)
+
+
+def se3_exp(xi: np.ndarray) -> np.ndarray:
+    """4x4 pose of the tangent vector ``xi = (omega, v)`` (gtsam.Pose3.Expmap)."""
+    xi = np.asarray(xi, dtype=np.float64)
+    T = np.eye(4)
+    T[:3, :3] = so3_exp(xi[:3])
+    T[:3, 3] = _left_jacobian(xi[:3]) @ xi[3:]
+    return T
+
+
+def se3_log(T: np.ndarray) -> np.ndarray:
+    """Tangent vector ``(omega, v)`` of a 4x4 pose (gtsam.Pose3.Logmap)."""
+    w = so3_log(T[:3, :3])
+    v = np.linalg.solve(_left_jacobian(w), T[:3, 3])
+    return np.concatenate([w, v])
+
+
+def se3_inv(T: np.ndarray) -> np.ndarray:
+    """Inverse of a 4x4 rigid transform."""
+    out = np.eye(4)
+    out[:3, :3] = T[:3, :3].T
+    out[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+    return out
+
+
+def adjoint(T: np.ndarray) -> np.ndarray:
+    """6x6 adjoint of a pose for ``(omega, v)`` tangents: ``T exp(xi) = exp(Ad xi) T``."""
+    R, t = T[:3, :3], T[:3, 3]
+    A = np.zeros((6, 6))
+    A[:3, :3] = R
+    A[3:, 3:] = R
+    A[3:, :3] = skew(t) @ R
+    return A
+
+
+def transform_covariance(cov: np.ndarray, T_a_b: np.ndarray) -> np.ndarray:
+    """Covariance of pose ``P T_a_b`` (right perturbation) given the covariance ``cov`` of ``P``.
+
+    ``P exp(xi) T_a_b = P T_a_b exp(Ad(T_b_a) xi)``: the result is ``Ad cov Ad^T``.
+    """
+    A = adjoint(se3_inv(T_a_b))
+    return A @ cov @ A.T
+
+
+def rpy_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """Rz(yaw) Ry(pitch) Rx(roll) (rad), REP-103 fixed axes."""
+    cr, sr, cp, sp = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch)
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
+    ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
+    rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
+    return rz @ ry @ rx
+
+
+def yaw_of(R: np.ndarray) -> float:
+    """Heading (rad) of the x axis of ``R`` projected on the horizontal plane."""
+    return float(np.arctan2(R[1, 0], R[0, 0]))
+
+
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross product over the last axis (broadcasting); faster than ``np.cross`` on small rows."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
+def unit(v: np.ndarray) -> np.ndarray:
+    """Rows of ``v`` scaled to unit length (zero rows stay zero)."""
+    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    return v / np.maximum(n, _EPS)
+
+
+def angle_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle (rad) between rows of ``a`` and ``b``, accurate for small and obtuse angles."""
+    c = np.linalg.norm(cross(a, b), axis=-1)
+    dot = np.sum(a * b, axis=-1)
+    return np.arctan2(c, dot)
+
+
+def tangent_basis(b: np.ndarray) -> np.ndarray:
+    """(N, 3, 2) orthonormal bases of the tangent planes of unit vectors ``b`` (N, 3)."""
+    b = np.asarray(b, dtype=np.float64)
+    helper = np.where(np.abs(b[:, [0]]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    e1 = unit(cross(b, helper))
+    e2 = cross(b, e1)
+    return np.stack([e1, e2], axis=2)
+
+
+# ------------------------------------------------------------------------------------------------
+# Triangulation
+# ------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Triangulation:
+    """Result of :func:`triangulate_bearings` for ``T`` points from ``M`` observations."""
+
+    points: np.ndarray  # (T, 3) m
+    ok: np.ndarray  # (T,) bool: well conditioned and finite
+    depth: np.ndarray  # (M,) m along each observation ray (negative: behind the camera)
+    error: np.ndarray  # (M,) rad angle between each ray and the direction to its point
+    max_parallax: np.ndarray  # (T,) rad largest angle between two rays of a point
+
+
+def triangulate_bearings(index: np.ndarray, centers: np.ndarray, rays: np.ndarray,
+                         n_points: int, min_parallax: float = 0.0) -> Triangulation:
+    """Least-squares intersection of world-frame rays, batched over points.
+
+    ``index`` (M,) gives the point of each observation, ``centers`` (M, 3) the camera centres (m)
+    and ``rays`` (M, 3) the unit bearings rotated into the world frame. A point is ``ok`` when it
+    has >= 2 rays, its normal matrix is well conditioned and its largest ray angle is at least
+    ``min_parallax`` (rad).
+    """
+    index = np.asarray(index, dtype=np.int64)
+    rays = unit(np.asarray(rays, dtype=np.float64))
+    centers = np.asarray(centers, dtype=np.float64)
+    P = np.eye(3)[None] - rays[:, :, None] * rays[:, None, :]
+    A = np.zeros((n_points, 3, 3))
+    b = np.zeros((n_points, 3))
+    np.add.at(A, index, P)
+    np.add.at(b, index, np.einsum('mij,mj->mi', P, centers))
+    count = np.bincount(index, minlength=n_points)
+    eig_min = np.linalg.eigvalsh(A)[:, 0] if n_points else np.zeros(0)
+    A_reg = A + np.eye(3)[None] * 1e-12
+    pts = np.linalg.solve(A_reg, b[:, :, None])[:, :, 0] if n_points else np.zeros((0, 3))
+    # Largest pairwise parallax: angle of each ray to the mean ray direction, doubled bound.
+    mean_ray = np.zeros((n_points, 3))
+    np.add.at(mean_ray, index, rays)
+    mean_ray = unit(mean_ray)
+    ang = angle_between(rays, mean_ray[index])
+    max_par = np.zeros(n_points)
+    np.maximum.at(max_par, index, ang)
+    max_par = np.minimum(2.0 * max_par, np.pi)
+    diff = pts[index] - centers
+    depth = np.sum(diff * rays, axis=1)
+    err = angle_between(rays, diff)
+    ok = ((count >= 2) & (eig_min > 1e-8 * np.maximum(count, 1)) & np.isfinite(pts).all(axis=1)
+          & (max_par >= min_parallax))
+    return Triangulation(pts, ok, depth, err, max_par)
+
+
+# ------------------------------------------------------------------------------------------------
+# Pose from bearings to known points
+# ------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class PoseEstimate:
+    """Result of :func:`refine_pose_bearings`."""
+
+    T_w_c: np.ndarray  # (4, 4) camera pose in the world (m)
+    inliers: np.ndarray  # (N,) bool
+    covariance: np.ndarray | None  # (6, 6) (omega, v) right-perturbation covariance
+    error: np.ndarray  # (N,) rad angle between measured and predicted bearings
+
+
+def refine_pose_bearings(T_w_c: np.ndarray, points_w: np.ndarray, bearings: np.ndarray,
+                         sigma: float, *, huber_k: float = 1.345, chi2: float = 9.21,
+                         iterations: int = 10) -> PoseEstimate:
+    """Robust Gauss-Newton on the camera pose from unit bearings (N, 3) to world points (N, 3).
+
+    The residual is the predicted bearing in the tangent plane of the measured one (rad), valid
+    on the whole sphere; ``sigma`` is its standard deviation (rad). Inliers have a whitened
+    squared error below ``chi2`` and lie in the same hemisphere as their measurement.
+    """
+    T = np.array(T_w_c, dtype=np.float64)
+    P = np.asarray(points_w, dtype=np.float64)
+    b = unit(np.asarray(bearings, dtype=np.float64))
+    B = tangent_basis(b)
+    n = len(P)
+    if n == 0:
+        return PoseEstimate(T, np.zeros(0, bool), None, np.zeros(0))
+    info = None
+    gated = False  # second phase: gross outliers get zero weight
+    for _ in range(iterations):
+        R, t = T[:3, :3], T[:3, 3]
+        p = (P - t) @ R
+        r = np.maximum(np.linalg.norm(p, axis=1), _EPS)
+        d = p / r[:, None]
+        e = np.einsum('nik,ni->nk', B, d)
+        front = np.sum(d * b, axis=1) > 0
+        rn = np.linalg.norm(e, axis=1) / sigma
+        w = np.where(rn <= huber_k, 1.0, huber_k / np.maximum(rn, _EPS)) * front
+        if gated:
+            w = w * (rn * rn < chi2)
+        # d e / d p = B^T (I - d d^T) / r; d p / d(omega, v) = [[p]x, -I]
+        U = (B.transpose(0, 2, 1) - e[:, :, None] * d[:, None, :]) / r[:, None, None]
+        J = np.concatenate([cross(U, p[:, None, :]), -U], axis=2).reshape(-1, 6)
+        w2 = np.repeat(w, 2)
+        H = (J * w2[:, None]).T @ J
+        g = (J * w2[:, None]).T @ e.reshape(-1)
+        info = H / sigma**2
+        try:
+            delta = -np.linalg.solve(H + np.eye(6) * 1e-9, g)
+        except np.linalg.LinAlgError:
+            break
+        T = T @ se3_exp(delta)
+        if np.linalg.norm(delta) < 1e-8:
+            if gated:
+                break
+            gated = True
+    R, t = T[:3, :3], T[:3, 3]
+    d = unit((P - t) @ R)
+    err = angle_between(d, b)
+    e = np.einsum('nik,ni->nk', B, d)
+    inl = (np.sum(e * e, axis=1) / sigma**2 < chi2) & (np.sum(d * b, axis=1) > 0)
+    cov = None
+    if info is not None and np.isfinite(info).all():
+        try:
+            cov = np.linalg.inv(info)
+        except np.linalg.LinAlgError:
+            cov = None
+    return PoseEstimate(T, inl, cov, err)
+
+
+# ------------------------------------------------------------------------------------------------
+# Two-view geometry on bearings
+# ------------------------------------------------------------------------------------------------
+
+
+def _essential_8pt(b1: np.ndarray, b2: np.ndarray) -> np.ndarray:
+    A = (b2[:, :, None] * b1[:, None, :]).reshape(len(b1), 9)
+    _, _, Vt = np.linalg.svd(A)
+    E = Vt[-1].reshape(3, 3)
+    U, _, Vt = np.linalg.svd(E)
+    return U @ np.diag([1.0, 1.0, 0.0]) @ Vt
+
+
+def epipolar_error(E: np.ndarray, b1: np.ndarray, b2: np.ndarray) -> np.ndarray:
+    """Angular distance (rad, small angle) of bearings to their epipolar planes (larger side)."""
+    Eb1 = b1 @ E.T
+    Etb2 = b2 @ E
+    num = np.abs(np.sum(b2 * Eb1, axis=1))
+    e2 = num / np.maximum(np.linalg.norm(Eb1, axis=1), _EPS)
+    e1 = num / np.maximum(np.linalg.norm(Etb2, axis=1), _EPS)
+    return np.maximum(e1, e2)
+
+
+@dataclass(frozen=True)
+class RelativePose:
+    """Two-view result: ``x2 = R x1 + t`` (unit ``t``) and the inlier correspondences."""
+
+    R: np.ndarray
+    t: np.ndarray
+    inliers: np.ndarray  # (N,) bool: epipolar inlier with positive depth in both views
+    points: np.ndarray  # (N, 3) triangulated in view 1 for a unit baseline (NaN if not ok)
+
+
+def _cheirality(R: np.ndarray, t: np.ndarray, b1: np.ndarray, b2: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+    n = len(b1)
+    centers = np.concatenate([np.zeros((n, 3)), np.tile(-R.T @ t, (n, 1))])
+    rays = np.concatenate([b1, b2 @ R])
+    idx = np.concatenate([np.arange(n), np.arange(n)])
+    tri = triangulate_bearings(idx, centers, rays, n)
+    good = tri.ok & (tri.depth[:n] > 0) & (tri.depth[n:] > 0)
+    pts = np.where(good[:, None], tri.points, np.nan)
+    return good, pts
+
+
+def relative_pose_bearings(b1: np.ndarray, b2: np.ndarray, threshold: float,
+                           rng: np.random.Generator, *, iterations: int = 300,
+                           confidence: float = 0.999) -> RelativePose | None:
+    """Calibrated relative pose from bearing correspondences (RANSAC + 8-point on the sphere).
+
+    Works for bearings on the whole sphere (fisheye points beyond 90 degrees off-axis included),
+    unlike solvers on normalised image coordinates. ``threshold`` is the epipolar error (rad).
+    Returns ``None`` when fewer than 8 correspondences or no consistent model exist.
+    """
+    b1 = unit(np.asarray(b1, dtype=np.float64))
+    b2 = unit(np.asarray(b2, dtype=np.float64))
+    n = len(b1)
+    if n < 8:
+        return None
+    best = np.zeros(n, bool)
+    max_iter = iterations
+    it = 0
+    while it < max_iter:
+        it += 1
+        sample = rng.choice(n, 8, replace=False)
+        E = _essential_8pt(b1[sample], b2[sample])
+        inl = epipolar_error(E, b1, b2) < threshold
+        if inl.sum() > best.sum():
+            best = inl
+            ratio = best.mean()
+            denom = np.log(max(1.0 - ratio**8, 1e-12))
+            if denom < -1e-9:  # adaptive stop once a good model is very likely found
+                max_iter = min(iterations, int(np.ceil(np.log(1 - confidence) / denom)) + 1)
+    if best.sum() < 8:
+        return None
+    for _ in range(3):  # refit on the inliers, re-select
+        E = _essential_8pt(b1[best], b2[best])
+        new = epipolar_error(E, b1, b2) < threshold
+        if new.sum() < 8:
+            break
+        best = new
+    U, _, Vt = np.linalg.svd(E)
+    if np.linalg.det(U) < 0:
+        U = -U
+    if np.linalg.det(Vt) < 0:
+        Vt = -Vt
+    W = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    candidates = [(U @ W @ Vt, U[:, 2]), (U @ W @ Vt, -U[:, 2]),
+                  (U @ W.T @ Vt, U[:, 2]), (U @ W.T @ Vt, -U[:, 2])]
+    scored = []
+    for R, t in candidates:
+        good, pts = _cheirality(R, t, b1[best], b2[best])
+        scored.append((int(good.sum()), R, t))
+    scored.sort(key=lambda s: -s[0])
+    _, R, t = scored[0]
+    good_all, pts_all = _cheirality(R, t, b1, b2)
+    inliers = best & good_all
+    if inliers.sum() < 8:
+        return None
+    return RelativePose(R, t, inliers, pts_all)
+
+
+# ------------------------------------------------------------------------------------------------
+# Planes and alignment
+# ------------------------------------------------------------------------------------------------
+
+
+def fit_plane_ransac(points: np.ndarray, threshold: float, rng: np.random.Generator, *,
+                     iterations: int = 200) -> tuple[np.ndarray, float, np.ndarray] | None:
+    """Plane ``n . x = d`` (unit ``n``) through points (N, 3) by RANSAC + least squares.
+
+    Returns ``(n, d, inliers)`` or ``None`` with fewer than 3 points or no plane.
+    """
+    P = np.asarray(points, dtype=np.float64)
+    n = len(P)
+    if n < 3:
+        return None
+    best = np.zeros(n, bool)
+    for _ in range(iterations):
+        a, b, c = P[rng.choice(n, 3, replace=False)]
+        normal = cross(b - a, c - a)
+        norm = np.linalg.norm(normal)
+        if norm < _EPS:
+            continue
+        normal /= norm
+        inl = np.abs(P @ normal - normal @ a) < threshold
+        if inl.sum() > best.sum():
+            best = inl
+    if best.sum() < 3:
+        return None
+    for _ in range(2):
+        Q = P[best]
+        c = Q.mean(axis=0)
+        _, _, Vt = np.linalg.svd(Q - c)
+        normal = Vt[-1]
+        d = float(normal @ c)
+        new = np.abs(P @ normal - d) < threshold
+        if new.sum() < 3:
+            break
+        best = new
+    return normal, d, best
+
+
+def align_yaw(src: np.ndarray, dst: np.ndarray, with_scale: bool
+              ) -> tuple[float, np.ndarray, np.ndarray]:
+    """4-DoF (+ optional scale) alignment ``dst ~ s Rz src + t`` of point sets (N, 3), z kept up.
+
+    Returns ``(s, R (3, 3) rotation about z, t (3,))``.
+    """
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    ms, md = src.mean(axis=0), dst.mean(axis=0)
+    a, b = src - ms, dst - md
+    # Rotation about z maximising sum b . (R a).
+    sxx = np.sum(a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1])
+    sxy = np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])
+    yaw = np.arctan2(sxy, sxx)
+    R = rpy_matrix(0.0, 0.0, yaw)
+    ra = a @ R.T
+    s = float(np.sum(b * ra) / max(np.sum(a * a), _EPS)) if with_scale else 1.0
+    t = md - s * R @ ms
+    return s, R, t
+
+
+def matrix_to_quaternion(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion ``(qx, qy, qz, qw)`` of a rotation matrix, ``qw >= 0``."""
+    R = np.asarray(R, dtype=np.float64)
+    tr = np.trace(R)
+    if tr > 0:
+        s = 2.0 * np.sqrt(tr + 1.0)
+        q = np.array([(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s,
+                      (R[1, 0] - R[0, 1]) / s, 0.25 * s])
+    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
+        q = np.array([0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s,
+                      (R[2, 1] - R[1, 2]) / s])
+    elif R[1, 1] > R[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
+        q = np.array([(R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s,
+                      (R[0, 2] - R[2, 0]) / s])
+    else:
+        s = 2.0 * np.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
+        q = np.array([(R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s,
+                      (R[1, 0] - R[0, 1]) / s])
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q
+
+
+def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a quaternion ``(qx, qy, qz, qw)`` (normalised first)."""
+    x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])

@@ -1,0 +1,1448 @@
+"""Incremental semantic mapper: tracks (+ wheel odometry, GNSS) -> poses and a labelled map.
+
+One :class:`Mapper` owns a GTSAM fixed-lag smoother (``IncrementalFixedLagSmoother``: iSAM2 with
+states older than ``window_keyframes`` marginalised), fed like GTSAM's VisualISAM2Example: per
+keyframe the new factors and values, keys from ``gtsam.symbol_shorthand`` (``X`` camera poses,
+``L`` landmarks). Marginalised landmarks move into a voxel-bounded map, so per-keyframe cost and
+smoother memory stay flat on a long drive.
+
+Pipeline per frame: validate -> label votes -> (two-view initialisation | pose tracking against
+the landmarks) -> keyframe decision -> keyframe: bearing factors of the tracked landmarks,
+odometry between-factor, GNSS factor, new landmarks triangulated from tracks seen in enough
+keyframes with enough parallax (static classes only), ground-plane factors -> smoother update
+(failures recovered, never raised) -> marginalisation bookkeeping -> outlier rejection.
+
+Frames: poses returned are base_link in ``map`` (z up, m); internally the pose variables are the
+camera optical frame in ``map`` so that bearings need no extrinsic inside the factors.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import time
+from typing import Any
+
+import gtsam
+from gtsam.symbol_shorthand import L, X
+import numpy as np
+
+from semfeat_ros.camera import CameraModel
+from semfeat_ros.labels import LabelSet, load_labels
+from semfeat_ros.mapping import factors as fac
+from semfeat_ros.mapping.cloud import SemanticCloud, VoxelMap
+from semfeat_ros.mapping.config import merge_conf
+from semfeat_ros.mapping.errors import MapperConfigError, StampOrderError
+from semfeat_ros.mapping.floors import FloorLevels, detect_floors
+from semfeat_ros.mapping.geometry import (
+    adjoint,
+    align_yaw,
+    angle_between,
+    fit_plane_ransac,
+    refine_pose_bearings,
+    relative_pose_bearings,
+    se3_exp,
+    se3_inv,
+    se3_log,
+    transform_covariance,
+    triangulate_bearings,
+)
+from semfeat_ros.mapping.types import GnssFix, MapperResult, OdometryDelta, Tracks
+
+STATES = ('initializing', 'tracking', 'odometry_only', 'lost')
+# What gtsam raises from a failed update: IndeterminantLinearSystem and cheirality/other C++
+# exceptions arrive as RuntimeError, std::out_of_range as IndexError, invalid_argument as
+# ValueError.
+_SOLVER_ERRORS = (RuntimeError, IndexError, ValueError)
+
+
+def _first_line(exc: BaseException) -> str:
+    """First non-empty line of an exception message (gtsam's start with a newline)."""
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    return (lines[0] if lines else type(exc).__name__)[:100]
+
+
+@dataclass(eq=False)
+class _Track:
+    counts: dict[int, int] = field(default_factory=dict)  # label -> frames
+    n: int = 0  # frames seen
+    n_dyn: int = 0  # frames labelled with a dynamic class
+    major: int = 0  # majority label
+    kf_obs: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    lid: int = -1  # landmark id (-1: none)
+    frozen: np.ndarray | None = None  # position of its marginalised landmark (m)
+    rejected: bool = False
+
+
+@dataclass(eq=False)
+class _Landmark:
+    lid: int
+    track: int
+    label: int
+    ground: bool
+    xyz: np.ndarray
+    rids: list[int] = field(default_factory=list)
+    n_obs: int = 0
+    n_bad: int = 0
+    kf_ids: list[int] = field(default_factory=list)  # keyframes that observed it
+    ray0: np.ndarray | None = None  # first observation ray in the map frame
+    max_par: float = 0.0  # largest angle between its observation rays (rad)
+    last_kf: int = 0
+    reproj_px: float = 0.0
+    alive: bool = True
+
+
+@dataclass(eq=False)
+class _Keyframe:
+    kid: int
+    stamp_ns: int
+    n_tracks: int
+    odom_linked: bool = False
+    rids: list[int] = field(default_factory=list)
+
+
+@dataclass(eq=False)
+class _Rec:
+    rid: int
+    factor: Any  # gtsam.NonlinearFactor
+    kind: str  # bearing, ground, odom, gnss, prior, link, anchor, recovery, dead
+    kid: int = -1
+    lid: int = -1
+    index: int = -1  # slot in the smoother's factor graph
+    removed: bool = False
+    bearing: np.ndarray | None = None
+    pixel: np.ndarray | None = None
+
+
+class _OdomChain:
+    """Composition of odometry deltas with first-order covariance propagation."""
+
+    def __init__(self, ok: bool) -> None:
+        self.T = np.eye(4)
+        self.cov = np.zeros((6, 6))
+        self.ok = ok
+        self.dist = 0.0
+
+    def add(self, d: OdometryDelta) -> None:
+        A = adjoint(se3_inv(d.T))
+        self.cov = A @ self.cov @ A.T + d.covariance
+        self.T = self.T @ d.T
+        self.dist += float(np.linalg.norm(d.T[:3, 3]))
+
+
+@dataclass
+class _PendingFix:
+    stamp_ns: int
+    position: np.ndarray
+    covariance: np.ndarray
+    T_wb: np.ndarray | None  # estimated base pose at the fix's frame
+
+
+class Mapper:
+    """Incremental fixed-lag factor-graph mapper.
+
+    ``camera`` is the model the bearings came through (used for its focal length and for
+    reprojection errors in px); ``T_base_cam`` (4, 4) the base_link -> camera optical frame
+    extrinsic (m); ``conf`` overrides :data:`semfeat_ros.mapping.config.default_conf`.
+    """
+
+    def __init__(self, camera: CameraModel, T_base_cam: np.ndarray,
+                 conf: dict[str, Any] | None = None, labels: LabelSet | None = None) -> None:
+        self.conf = merge_conf(conf)
+        self.camera = camera
+        T = np.asarray(T_base_cam, dtype=np.float64)
+        if T.shape != (4, 4) or not np.isfinite(T).all() or not np.allclose(
+                T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-6):
+            raise MapperConfigError(
+                f'T_base_cam must be a finite 4x4 rigid transform, got shape {T.shape}')
+        self.T_bc = T
+        self.T_cb = se3_inv(T)
+        self._up_c = self.T_bc[2, :3].copy()  # base_link z axis in the optical frame
+        height = self.conf['camera_height_m']
+        self.camera_height = float(height if height is not None else self.T_bc[2, 3])
+        if self.camera_height <= 0:
+            raise MapperConfigError(
+                f'camera height above the ground must be > 0 m, got {self.camera_height} '
+                '(set camera_height_m or the z of T_base_cam)')
+        self.labels = labels if labels is not None else load_labels(self.conf['labels_path'])
+        n_cls = len(self.labels.names)
+        self._static = np.zeros(256, bool)
+        self._static[:n_cls] = self.labels.static & ~self.labels.dynamic
+        self._dynamic = np.zeros(256, bool)
+        self._dynamic[:n_cls] = self.labels.dynamic
+        self._ground = np.zeros(256, bool)
+        for name in self.conf['ground_labels']:
+            try:
+                self._ground[self.labels.id_of(name)] = True
+            except KeyError as exc:
+                raise MapperConfigError(f'ground_labels: {exc.args[0]}') from None
+        self._n_classes = n_cls
+        self.sigma = self.conf['bearing_sigma_px'] / float(camera.fx)  # rad
+        self._gate = float(np.sqrt(self.conf['outlier_chi2'])) * self.sigma  # rad
+        self._bnoise = fac.bearing_noise(self.sigma, self.conf['robust_kernel'],
+                                       self.conf['robust_k'])
+        self._gnoise = fac.robust(gtsam.noiseModel.Isotropic.Sigma(1, self.conf['ground_sigma_m']),
+                                'huber', 1.345)
+        self._arm_b = np.asarray(self.conf['gnss_lever_arm_m'], dtype=np.float64)
+        self._arm_c = self.T_cb[:3, :3] @ self._arm_b + self.T_cb[:3, 3]
+        self.reset()
+
+    # ------------------------------------------------------------------------------------------
+    # public API
+    # ------------------------------------------------------------------------------------------
+
+    def reset(self) -> None:
+        """Forget everything (map, trajectory, smoother); the next frame starts a new map."""
+        self._rng = np.random.default_rng(self.conf['seed'])
+        self._state = 'initializing'
+        self._metric = False
+        self._scale_from_odometry = False
+        self._last_stamp: int | None = None
+        self._tracks: dict[int, _Track] = {}
+        self._kf_stamps: list[int] = []
+        self._kf_T_wc: list[np.ndarray] = []
+        self._kf_alt: list[float] = []
+        self._kfs: dict[int, _Keyframe] = {}
+        self._last_kid = -1
+        self._lms: dict[int, _Landmark] = {}
+        self._lm_by_ts: dict[int, set[int]] = {}
+        self._next_lid = 0
+        self._recs: dict[int, _Rec] = {}
+        self._all_recs: list[_Rec] = []
+        self._next_rid = 0
+        self._pending_remove: set[int] = set()
+        self._pending_recs: list[_Rec] = []
+        self._voxels = VoxelMap(self.conf['voxel_size_m'], self.conf['max_map_points'])
+        self._final_xyz: dict[int, np.ndarray] = {}
+        self._smoother = self._make_smoother()
+        self._estimate = gtsam.Values()
+        self._max_ts = -1
+        # tracking
+        self._history: list[tuple[int, np.ndarray]] = []  # (stamp, T_wc) of the last frames
+        self._kf_odom = _OdomChain(False)
+        self._ref: dict[str, Any] | None = None
+        self._ref_odom = _OdomChain(False)
+        self._init_attempts = 0
+        self._link: dict[str, Any] | None = None
+        # gnss
+        self._gnss_pending: _PendingFix | None = None
+        self._gnss_pairs: list[tuple[int, np.ndarray, np.ndarray]] = []
+        self._gnss_aligned = False
+        self._gnss_rejects = 0
+        self._floors: FloorLevels | None = None
+        self._floors_at = -1
+        self.stats: dict[str, int] = dict(
+            frames=0, keyframes=0, landmarks=0, update_failures=0, recoveries=0,
+            outlier_factors=0, landmarks_killed=0, gnss_accepted=0, gnss_rejected=0,
+            tracking_lost=0, initialisations=0, rejected_rows=0,
+            obs_beyond_90deg=0)
+
+    @property
+    def state(self) -> str:
+        """'initializing', 'tracking', 'odometry_only' or 'lost'."""
+        return self._state
+
+    @property
+    def metric(self) -> bool:
+        """True once the scale comes from odometry, GNSS or the ground plane."""
+        return self._metric
+
+    @property
+    def gnss_aligned(self) -> bool:
+        """True once the map frame has been aligned to the GNSS (ENU) frame."""
+        return self._gnss_aligned
+
+    def update(self, tracks: Tracks, odometry: OdometryDelta | None = None,
+               gnss: GnssFix | None = None) -> MapperResult:
+        """Process one frame; returns the base pose estimate and what happened.
+
+        ``odometry`` is the base motion since the previous frame given to ``update`` (ignored
+        unless ``use_odometry``); ``gnss`` a fix near this frame (ignored unless ``use_gnss``).
+        Invalid inputs raise :class:`MapperInputError`; solver failures are recovered.
+        """
+        t0 = time.perf_counter()
+        events: list[str] = []
+        frame, n_bad = tracks.validated()
+        if self._last_stamp is not None and frame.stamp_ns <= self._last_stamp:
+            raise StampOrderError(
+                f'stamp_ns {frame.stamp_ns} is not after the previous frame {self._last_stamp}')
+        if odometry is not None and self.conf['use_odometry']:
+            odometry = odometry.validated()
+        else:
+            odometry = None
+        self._last_stamp = frame.stamp_ns
+        self.stats['frames'] += 1
+        self.stats['rejected_rows'] += n_bad
+        if self.conf['use_odometry']:
+            for chain in (self._kf_odom, self._ref_odom):
+                if odometry is None:
+                    chain.ok = False
+                else:
+                    chain.add(odometry)
+        mappable = self._vote(frame)
+        fix = None
+        if self.conf['use_gnss'] and gnss is not None:
+            fix = self._check_fix(gnss, self._predict(frame.stamp_ns, odometry), events)
+        keyframe = False
+        T_wc, cov_c, n_inl = None, None, 0
+        if self._state in ('initializing', 'lost'):
+            T_wc, keyframe = self._initialize(frame, mappable, fix, events)
+            if T_wc is None and self._state == 'lost':
+                T_wc = self._predict(frame.stamp_ns, odometry)
+            elif keyframe:  # just initialised: the smoother's marginal of the new pose
+                try:
+                    cov_c = np.asarray(self._smoother.marginalCovariance(X(self._last_kid)))
+                except _SOLVER_ERRORS:
+                    cov_c = None
+        else:
+            T_wc, cov_c, n_inl, keyframe = self._track(frame, mappable, odometry, fix, events)
+        self._prune_tracks(frame)
+        T_wb = None if T_wc is None else T_wc @ self.T_cb
+        if fix is not None and not keyframe:
+            self._gnss_pending = _PendingFix(fix.stamp_ns, fix.position, fix.covariance, T_wb)
+        cov_b = None if cov_c is None else transform_covariance(cov_c, self.T_cb)
+        if keyframe:
+            events.append('keyframe')
+        return MapperResult(
+            frame.stamp_ns, T_wb, cov_b, self._state, keyframe, self._metric, len(frame),
+            int(n_inl), len(self._lms) + len(self._voxels),
+            (time.perf_counter() - t0) * 1e3, tuple(events))
+
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+        """Keyframe trajectory: ``(stamps_ns (K,) int64, T_map_base (K, 4, 4))`` (m)."""
+        stamps = np.array(self._kf_stamps, dtype=np.int64)
+        if not self._kf_T_wc:
+            return stamps, np.zeros((0, 4, 4))
+        return stamps, np.array(self._kf_T_wc) @ self.T_cb
+
+    def floor_levels(self) -> FloorLevels:
+        """Levels detected from the keyframe altitude profile (recomputed when stale)."""
+        k = len(self._kf_T_wc)
+        if self._floors is None or self._floors_at != k:
+            _, poses = self.trajectory()
+            c = self.conf
+            self._floors = detect_floors(
+                poses[:, :3, 3] if k else np.zeros((0, 3)), max_slope=c['floor_max_slope'],
+                slope_window_m=c['floor_slope_window_m'], min_plateau_m=c['floor_min_plateau_m'],
+                merge_m=c['floor_merge_m'])
+            self._floors_at = k
+        return self._floors
+
+    def cloud(self) -> SemanticCloud:
+        """The map: marginalised (voxel-bounded) landmarks plus the current window's landmarks.
+
+        Only static classes, landmarks with ``cloud_min_obs`` observations and a mean
+        reprojection error within ``max_reprojection_px``; floors from :meth:`floor_levels`.
+        """
+        levels = self.floor_levels()
+        xyz_f, lab_f, lid_f, nobs_f, alt_f = self._voxels.arrays()
+        rows = []
+        for lm in self._lms.values():
+            if self._publishable(lm):
+                key = L(lm.lid)
+                xyz = self._estimate.atPoint3(key) if self._estimate.exists(key) else lm.xyz
+                rows.append((xyz, lm.label, lm.lid, lm.n_obs, self._floor_alt(lm, xyz, levels)))
+        if rows:
+            xyz_w = np.array([r[0] for r in rows])
+            lab_w = np.array([r[1] for r in rows], np.uint8)
+            lid_w = np.array([r[2] for r in rows], np.uint32)
+            nobs_w = np.array([r[3] for r in rows])
+            alt_w = np.array([r[4] for r in rows])
+        else:
+            xyz_w, lab_w, lid_w = np.zeros((0, 3)), np.zeros(0, np.uint8), np.zeros(0, np.uint32)
+            nobs_w, alt_w = np.zeros(0), np.zeros(0)
+        xyz = np.concatenate([xyz_f, xyz_w])
+        lab = np.concatenate([lab_f, lab_w])
+        keep = self._static[lab]
+        alt = np.concatenate([alt_f, alt_w])[keep]
+        return SemanticCloud.build(
+            xyz[keep], lab[keep], levels.assign(alt),
+            np.concatenate([lid_f, lid_w])[keep], np.concatenate([nobs_f, nobs_w])[keep],
+            self.labels.colors)
+
+    def window(self) -> dict[str, int]:
+        """Size of the smoother's window: keyframes, landmarks, factors; and the voxel map."""
+        return dict(keyframes=len(self._kfs), landmarks=len(self._lms), factors=len(self._recs),
+                    map_points=len(self._voxels))
+
+    def landmark_positions(self) -> dict[int, np.ndarray]:
+        """Current position (m) of every live landmark in the window (for diagnostics)."""
+        out = {}
+        for lid, lm in self._lms.items():
+            if lm.alive and self._estimate.exists(L(lid)):
+                out[lid] = self._estimate.atPoint3(L(lid))
+        return out
+
+    def batch_optimize(self, max_iterations: int = 100
+                       ) -> tuple[np.ndarray, dict[int, np.ndarray]]:
+        """Levenberg-Marquardt on every factor ever kept (needs ``keep_full_graph``).
+
+        Returns ``(T_map_base (K, 4, 4), {landmark id: position (m)})``; the incremental
+        estimates are the initial values. Used to check the incremental solution.
+        """
+        if not self.conf['keep_full_graph']:
+            raise MapperConfigError('batch_optimize needs keep_full_graph=True in the conf')
+        skip = {'anchor', 'recovery', 'dead'} | ({'prior'} if self._gnss_aligned else set())
+        graph = gtsam.NonlinearFactorGraph()
+        keys: set[int] = set()
+        for rec in self._all_recs:
+            if rec.removed or rec.kind in skip:
+                continue
+            graph.add(rec.factor)
+            keys.update(rec.factor.keys())
+        values = gtsam.Values()
+        for key in keys:
+            sym = gtsam.Symbol(key)
+            idx = sym.index()
+            if chr(sym.chr()) == 'x':
+                values.insert(key, gtsam.Pose3(self._kf_T_wc[idx]))
+            else:
+                if self._estimate.exists(key):
+                    xyz = self._estimate.atPoint3(key)
+                elif idx in self._final_xyz:
+                    xyz = self._final_xyz[idx]
+                else:
+                    xyz = self._lms[idx].xyz
+                values.insert(key, xyz)
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(max_iterations)
+        result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+        poses = np.array([
+            (result.atPose3(X(k)).matrix() if result.exists(X(k)) else self._kf_T_wc[k])
+            @ self.T_cb for k in range(len(self._kf_T_wc))])
+        lms = {}
+        for key in keys:
+            sym = gtsam.Symbol(key)
+            if chr(sym.chr()) == 'l':
+                lms[int(sym.index())] = result.atPoint3(key)
+        return poses.reshape(-1, 4, 4), lms
+
+    # ------------------------------------------------------------------------------------------
+    # tracks and labels
+    # ------------------------------------------------------------------------------------------
+
+    def _vote(self, frame: Tracks) -> np.ndarray:
+        """Update label votes; returns the (N,) mask of tracks allowed into the map."""
+        n = len(frame)
+        ok = np.zeros(n, bool)
+        max_dyn = self.conf['dynamic_max_fraction']
+        dynamic, static = self._dynamic.tolist(), self._static.tolist()
+        for i, (tid, lab) in enumerate(zip(frame.track_id.tolist(), frame.label.tolist())):
+            tr = self._tracks.get(tid)
+            if tr is None:
+                tr = _Track(major=lab)
+                self._tracks[tid] = tr
+            cnt = tr.counts.get(lab, 0) + 1
+            tr.counts[lab] = cnt
+            tr.n += 1
+            tr.n_dyn += dynamic[lab]
+            if cnt > tr.counts.get(tr.major, 0):
+                tr.major = lab
+            ok[i] = static[tr.major] and tr.n_dyn <= max_dyn * tr.n and not tr.rejected
+        return ok
+
+    def _prune_tracks(self, frame: Tracks) -> None:
+        """Tracks absent from this frame ended (ids are never reused): forget them."""
+        alive = set(frame.track_id.tolist())
+        for tid in [t for t in self._tracks if t not in alive]:
+            del self._tracks[tid]
+
+    def _label_of(self, tr: _Track) -> int:
+        return tr.major
+
+    # ------------------------------------------------------------------------------------------
+    # prediction and tracking
+    # ------------------------------------------------------------------------------------------
+
+    def _predict(self, stamp_ns: int, odometry: OdometryDelta | None) -> np.ndarray | None:
+        """Camera pose at ``stamp_ns`` from odometry or a constant-velocity model."""
+        if not self._history:
+            return None
+        t1, T1 = self._history[-1]
+        if odometry is not None:
+            return T1 @ self.T_cb @ odometry.T @ self.T_bc
+        if len(self._history) < 2:
+            return T1.copy()
+        t0, T0 = self._history[-2]
+        dt_prev = (t1 - t0) * 1e-9
+        dt = (stamp_ns - t1) * 1e-9
+        if dt_prev <= 0:
+            return T1.copy()
+        xi = se3_log(se3_inv(T0) @ T1) * (dt / dt_prev)
+        return T1 @ se3_exp(xi)
+
+    def _push_pose(self, stamp_ns: int, T_wc: np.ndarray) -> None:
+        self._history.append((stamp_ns, T_wc))
+        del self._history[:-2]
+
+    def _landmark_of(self, tr: _Track) -> np.ndarray | None:
+        if tr.lid >= 0:
+            lm = self._lms.get(tr.lid)
+            if lm is not None:
+                return lm.xyz if lm.alive else None
+        return tr.frozen
+
+    def _track(self, frame: Tracks, mappable: np.ndarray, odometry: OdometryDelta | None,
+               fix: GnssFix | None, events: list[str]
+               ) -> tuple[np.ndarray | None, np.ndarray | None, int, bool]:
+        pred = self._predict(frame.stamp_ns, odometry)
+        idx = np.flatnonzero(mappable)
+        sel, pts = [], []
+        for i in idx.tolist():
+            p = self._landmark_of(self._tracks[int(frame.track_id[i])])
+            if p is not None:
+                sel.append(i)
+                pts.append(p)
+        sel_a = np.array(sel, dtype=np.int64)
+        P = np.array(pts).reshape(-1, 3)
+        est = None
+        if len(sel_a) >= 6:
+            est = refine_pose_bearings(pred, P, frame.bearing[sel_a], self.sigma,
+                                       huber_k=self.conf['robust_k'],
+                                       chi2=self.conf['outlier_chi2'])
+        n_inl = int(est.inliers.sum()) if est is not None else 0
+        cov_c = None
+        if n_inl >= self.conf['min_tracking_inliers']:
+            T_wc, inliers, cov_c = est.T_w_c, est.inliers, est.covariance
+            if self._state != 'tracking':
+                events.append('tracking_resumed')
+            self._state = 'tracking'
+        elif odometry is not None:
+            T_wc = pred
+            if len(sel_a):
+                d = (P - T_wc[:3, 3]) @ T_wc[:3, :3]
+                inliers = angle_between(d, frame.bearing[sel_a]) < 3 * self._gate
+            else:
+                inliers = np.zeros(0, bool)
+            if self._state != 'odometry_only':
+                events.append('odometry_only')
+            self._state = 'odometry_only'
+        else:
+            self._lose_tracking(frame.stamp_ns, pred, events)
+            return pred, None, n_inl, False
+        self._push_pose(frame.stamp_ns, T_wc)
+        obs_idx = sel_a[np.flatnonzero(inliers)].tolist() if len(sel_a) else []
+        if len(obs_idx) > self.conf['max_obs_per_keyframe']:
+            prio = np.array([self._lms[self._tracks[int(frame.track_id[i])].lid].n_obs
+                             if self._tracks[int(frame.track_id[i])].lid in self._lms else 0
+                             for i in obs_idx], dtype=float)
+            keep = self._spread(frame.pixel[obs_idx], prio, self.conf['max_obs_per_keyframe'])
+            obs_idx = [obs_idx[k] for k in keep]
+        lm_obs = [(int(frame.track_id[i]), i) for i in obs_idx]
+        if self._is_keyframe(frame, mappable, T_wc, n_inl):
+            self._add_keyframe(frame, mappable, T_wc, lm_obs, fix, events)
+            return self._kf_T_wc[-1], cov_c, n_inl, True
+        return T_wc, cov_c, n_inl, False
+
+    def _spread(self, pixels: np.ndarray, priority: np.ndarray, n: int) -> np.ndarray:
+        """Indices of ``n`` items spread over the image: round-robin over an 8x8 grid of
+        cells, each cell in decreasing ``priority``."""
+        cx = np.clip((pixels[:, 0] / self.camera.width * 8).astype(int), 0, 7)
+        cy = np.clip((pixels[:, 1] / self.camera.height * 8).astype(int), 0, 7)
+        cell = cy * 8 + cx
+        order = np.lexsort((-priority, cell))
+        sorted_cell = cell[order]
+        first = np.searchsorted(sorted_cell, sorted_cell, side='left')
+        rank = np.arange(len(order)) - first
+        pick = order[np.lexsort((-priority[order], rank))][:n]
+        return np.sort(pick)
+
+    def _is_keyframe(self, frame: Tracks, mappable: np.ndarray, T_wc: np.ndarray,
+                     n_inl: int) -> bool:
+        kid = self._last_kid
+        T_kf = self._kf_T_wc[kid]
+        dist = float(np.linalg.norm((T_wc @ self.T_cb)[:3, 3] - (T_kf @ self.T_cb)[:3, 3]))
+        if dist < self.conf['kf_min_distance_m']:
+            return False
+        if dist > self.conf['kf_max_distance_m'] or n_inl < 2 * self.conf['min_tracking_inliers']:
+            return True
+        R_rel = T_kf[:3, :3].T @ T_wc[:3, :3]
+        common, b_kf, b_cur = 0, [], []
+        for i in np.flatnonzero(mappable).tolist():
+            obs = self._tracks[int(frame.track_id[i])].kf_obs.get(kid)
+            if obs is not None:
+                common += 1
+                b_kf.append(obs[0])
+                b_cur.append(frame.bearing[i])
+        kf = self._kfs.get(kid)
+        if kf is None or common < self.conf['kf_min_tracked_fraction'] * kf.n_tracks:
+            return True
+        par = angle_between(np.array(b_kf), np.array(b_cur) @ R_rel.T)
+        return float(np.degrees(np.median(par))) > self.conf['kf_parallax_deg']
+
+    def _lose_tracking(self, stamp_ns: int, pred: np.ndarray | None, events: list[str]) -> None:
+        events.append('tracking_lost')
+        self.stats['tracking_lost'] += 1
+        self._state = 'lost'
+        self._ref = None
+        self._init_attempts = 0
+        if self._last_kid >= 0 and self._history:
+            t1, T1 = self._history[-1]
+            xi = np.zeros(6)
+            if len(self._history) >= 2:
+                t0, T0 = self._history[-2]
+                if t1 > t0:
+                    xi = se3_log(se3_inv(T0) @ T1) / ((t1 - t0) * 1e-9)
+            self._link = dict(kid=self._last_kid, stamp=t1, T_wc=T1, xi=xi)
+
+    # ------------------------------------------------------------------------------------------
+    # initialisation
+    # ------------------------------------------------------------------------------------------
+
+    def _set_ref(self, frame: Tracks, mappable: np.ndarray) -> None:
+        idx = np.flatnonzero(mappable)
+        self._ref = dict(
+            stamp=frame.stamp_ns, frames=0,
+            obs={int(frame.track_id[i]): (frame.bearing[i], frame.pixel[i]) for i in idx})
+        self._ref_odom = _OdomChain(self.conf['use_odometry'])
+
+    def _initialize(self, frame: Tracks, mappable: np.ndarray, fix: GnssFix | None,
+                    events: list[str]) -> tuple[np.ndarray | None, bool]:
+        c = self.conf
+        if self._ref is None or len(self._ref['obs']) < c['init_min_tracks']:
+            self._set_ref(frame, mappable)
+            return None, False
+        ref = self._ref
+        ref['frames'] += 1
+        idx = [i for i in np.flatnonzero(mappable).tolist()
+               if int(frame.track_id[i]) in ref['obs']]
+        if len(idx) < c['init_min_tracks'] or ref['frames'] > c['init_max_frames']:
+            self._set_ref(frame, mappable)
+            return None, False
+        ids = [int(frame.track_id[i]) for i in idx]
+        b1 = np.array([ref['obs'][t][0] for t in ids])
+        b2 = frame.bearing[idx]
+        if np.degrees(np.median(angle_between(b1, b2))) < c['init_min_parallax_deg']:
+            return None, False
+        rp = relative_pose_bearings(b1, b2, c['init_ransac_px'] / self.camera.fx, self._rng)
+        if rp is None or rp.inliers.mean() < c['init_min_inlier_ratio']:
+            return None, False
+        par = angle_between(b1, b2 @ rp.R)
+        good = rp.inliers & (par >= np.radians(c['lm_min_parallax_deg']))
+        if good.sum() < c['init_min_tracks'] // 2:
+            return None, False
+        # metric scale: odometry, else the ground plane at the camera height
+        metric = True
+        if self._ref_odom.ok and c['use_odometry']:
+            T_rel_c = self.T_cb @ self._ref_odom.T @ self.T_bc
+            s = float(np.linalg.norm(T_rel_c[:3, 3]))
+            if s < 0.05:
+                return None, False
+            from_odom = True
+        else:
+            from_odom = False
+            s = self._ground_scale(rp.points, good, ids)
+            if s is None:
+                self._init_attempts += 1
+                if c['init_require_metric'] and self._init_attempts < c['init_max_frames']:
+                    return None, False
+                s, metric = 1.0, False
+        T_c2c1 = np.eye(4)
+        T_c2c1[:3, :3], T_c2c1[:3, 3] = rp.R, rp.t * s
+        T_c1c2 = se3_inv(T_c2c1)
+        link = self._link if self._state == 'lost' else None
+        if link is not None:
+            dt = (ref['stamp'] - link['stamp']) * 1e-9
+            T_wc1 = link['T_wc'] @ se3_exp(link['xi'] * dt)
+        else:
+            T_wc1 = self.T_bc.copy()
+        T_wc2 = T_wc1 @ T_c1c2
+        self._create_initial_map(frame, mappable, ids, idx, rp.points[good] * s, good, T_wc1,
+                                 T_wc2, link, fix, events)
+        self._metric = self._metric or metric
+        self._scale_from_odometry = self._scale_from_odometry or from_odom
+        return self._kf_T_wc[-1], True
+
+    def _ground_scale(self, pts: np.ndarray, good: np.ndarray, ids: list[int]) -> float | None:
+        """Scale making the ground-labelled two-view points lie ``camera_height`` below."""
+        labs = np.array([self._label_of(self._tracks[t]) for t in ids])
+        g = good & self._ground[labs]
+        if g.sum() < 10:
+            return None
+        P = pts[g]
+        below = -(P @ self._up_c)  # unit-scale depth below the camera along base z
+        d0 = float(np.median(below))
+        if d0 <= 0:
+            return None
+        thr = self.conf['init_plane_threshold_m'] / self.camera_height * d0
+        fit = fit_plane_ransac(P, thr, self._rng)
+        if fit is None or fit[2].sum() < 10:
+            return None
+        n, d, _ = fit
+        if n @ self._up_c < 0:
+            n, d = -n, -d
+        # plane n . x = d with n ~ up: the camera (origin) is -d above it
+        if n @ self._up_c < np.cos(np.radians(15.0)) or -d <= 0:
+            return None
+        return self.camera_height / -d
+
+    def _create_initial_map(self, frame: Tracks, mappable: np.ndarray, ids: list[int],
+                            idx: list[int], pts_c1: np.ndarray, good: np.ndarray,
+                            T_wc1: np.ndarray, T_wc2: np.ndarray, link: dict | None,
+                            fix: GnssFix | None, events: list[str]) -> None:
+        ref = self._ref
+        ka = self._new_keyframe(ref['stamp'], T_wc1, len(ref['obs']))
+        kb = self._new_keyframe(frame.stamp_ns, T_wc2, int(mappable.sum()))
+        recs: list[_Rec] = []
+        values = gtsam.Values()
+        values.insert(X(ka), gtsam.Pose3(T_wc1))
+        values.insert(X(kb), gtsam.Pose3(T_wc2))
+        ts = {X(ka): self._ts(ka), X(kb): self._ts(kb)}
+        if link is not None and link['kid'] in self._kfs:
+            c = self.conf
+            dt = max((ref['stamp'] - link['stamp']) * 1e-9, 0.1)
+            sig = np.array([c['reinit_link_sigma_rad']] * 3 + [c['reinit_link_sigma_m']] * 3)
+            cov = np.diag((sig * dt) ** 2)
+            T_rel = se3_inv(self._kf_T_wc[link['kid']]) @ T_wc1
+            recs.append(self._rec(fac.between(X(link['kid']), X(ka), T_rel, cov), 'link', ka))
+            events.append('reinitialised')
+        elif link is not None:  # the old window is gone: anchor the new segment where predicted
+            recs.append(self._rec(fac.pose_prior(X(ka), T_wc1, self._prior_cov()), 'link', ka))
+            events.append('reinitialised')
+        else:
+            recs.append(self._rec(fac.pose_prior(X(ka), T_wc1, self._prior_cov()), 'prior', ka))
+        if self._ref_odom.ok:
+            self._add_odom_rec(ka, kb, self._ref_odom, recs)
+        for t in ids:  # keyframe observations of every common mappable track
+            tr = self._tracks[t]
+            tr.kf_obs[ka] = ref['obs'][t]
+        for i in np.flatnonzero(mappable).tolist():
+            self._tracks[int(frame.track_id[i])].kf_obs[kb] = (frame.bearing[i], frame.pixel[i])
+        new_lids = []
+        R1, t1 = T_wc1[:3, :3], T_wc1[:3, 3]
+        for t, p in zip(np.array(ids)[good], pts_c1):
+            tr = self._tracks[int(t)]
+            lid = self._new_landmark(int(t), tr, R1 @ p + t1, [ka, kb], recs, values, kb, ts)
+            new_lids.append(lid)
+        for kid in (ka, kb):
+            self._add_ground_recs(kid, new_lids, recs)
+        self._attach_gnss(kb, fix, recs)
+        self._state = 'tracking'
+        self._link = None
+        self._ref = None
+        self.stats['initialisations'] += 1
+        self._kf_odom = _OdomChain(self.conf['use_odometry'])
+        self._history = [(ref['stamp'], T_wc1), (frame.stamp_ns, T_wc2)]
+        self._commit(recs, values, ts, new_lids, kb, events)
+        events.append('initialised')
+
+    # ------------------------------------------------------------------------------------------
+    # keyframes
+    # ------------------------------------------------------------------------------------------
+
+    def _prior_cov(self) -> np.ndarray:
+        sr, sm = self.conf['prior_sigma_rad'], self.conf['prior_sigma_m']
+        cov_b = np.diag([sr**2] * 3 + [sm**2] * 3)
+        return transform_covariance(cov_b, self.T_bc)
+
+    def _new_keyframe(self, stamp_ns: int, T_wc: np.ndarray, n_tracks: int) -> int:
+        kid = len(self._kf_stamps)
+        self._kf_stamps.append(int(stamp_ns))
+        self._kf_T_wc.append(np.array(T_wc))
+        self._kf_alt.append(float((T_wc @ self.T_cb)[2, 3]))
+        self._kfs[kid] = _Keyframe(kid, int(stamp_ns), n_tracks)
+        self._last_kid = kid
+        self.stats['keyframes'] += 1
+        return kid
+
+    def _rec(self, factor: Any, kind: str, kid: int = -1, lid: int = -1,
+             bearing: np.ndarray | None = None, pixel: np.ndarray | None = None) -> _Rec:
+        rec = _Rec(self._next_rid, factor, kind, kid, lid, bearing=bearing, pixel=pixel)
+        self._next_rid += 1
+        if self.conf['keep_full_graph']:
+            self._all_recs.append(rec)
+        return rec
+
+    def _add_odom_rec(self, ka: int, kb: int, chain: _OdomChain, recs: list[_Rec]) -> None:
+        floor = self.conf['odom_min_sigma'] ** 2
+        T_rel_c = self.T_cb @ chain.T @ self.T_bc
+        cov_c = transform_covariance(chain.cov, self.T_bc) + np.eye(6) * floor
+        recs.append(self._rec(fac.between(X(ka), X(kb), T_rel_c, cov_c), 'odom', kb))
+        self._kfs[kb].odom_linked = True
+
+    def _add_keyframe(self, frame: Tracks, mappable: np.ndarray, T_wc: np.ndarray,
+                      lm_obs: list[tuple[int, int]], fix: GnssFix | None,
+                      events: list[str]) -> None:
+        prev = self._last_kid
+        kid = self._new_keyframe(frame.stamp_ns, T_wc, int(mappable.sum()))
+        recs: list[_Rec] = []
+        values = gtsam.Values()
+        values.insert(X(kid), gtsam.Pose3(T_wc))
+        ts = {X(kid): self._ts(kid)}
+        if self._kf_odom.ok and prev in self._kfs:
+            self._add_odom_rec(prev, kid, self._kf_odom, recs)
+        self._kf_odom = _OdomChain(self.conf['use_odometry'])
+        for i in np.flatnonzero(mappable).tolist():
+            self._tracks[int(frame.track_id[i])].kf_obs[kid] = (frame.bearing[i], frame.pixel[i])
+        seen: list[int] = []
+        seen_rows: list[int] = []
+        for tid, i in lm_obs:
+            tr = self._tracks[tid]
+            lm = self._lms.get(tr.lid)
+            if lm is None or not lm.alive:
+                continue
+            rec = self._rec(fac.bearing_factor(X(kid), L(lm.lid), frame.bearing[i], self._bnoise),
+                            'bearing', kid, lm.lid, frame.bearing[i], frame.pixel[i])
+            recs.append(rec)
+            lm.rids.append(rec.rid)
+            self._observed(lm, kid, frame.bearing[i])
+            self._touch(lm, kid, ts)
+            seen.append(lm.lid)
+            seen_rows.append(i)
+        self._update_parallax([self._lms[lid] for lid in seen],
+                              frame.bearing[seen_rows] @ T_wc[:3, :3].T)
+        new_lids = self._triangulate(frame, mappable, kid, recs, values, ts)
+        self._add_ground_recs(kid, seen + new_lids, recs)
+        self._attach_gnss(kid, fix, recs)
+        self._commit(recs, values, ts, seen + new_lids, kid, events)
+
+    def _observed(self, lm: _Landmark, kid: int, bearing: np.ndarray) -> None:
+        """Bookkeeping of a new observation: count and observing keyframe."""
+        lm.n_obs += 1
+        lm.kf_ids.append(kid)
+        self.stats['obs_beyond_90deg'] += int(bearing[2] < 0)
+
+    def _update_parallax(self, lms: list[_Landmark], rays: np.ndarray) -> None:
+        """Largest angle between each landmark's first ray and its new ray (map frame)."""
+        if not lms:
+            return
+        ray0 = np.array([lm.ray0 for lm in lms])
+        ang = angle_between(ray0, rays).tolist()
+        for lm, a in zip(lms, ang):
+            if a > lm.max_par:
+                lm.max_par = a
+
+    def _publishable(self, lm: _Landmark) -> bool:
+        """Alive, static, observed often enough, consistent and well triangulated."""
+        c = self.conf
+        return (lm.alive and lm.n_obs >= c['cloud_min_obs'] and self._static[lm.label]
+                and lm.reproj_px <= c['max_reprojection_px']
+                and lm.max_par >= np.radians(c['cloud_min_parallax_deg']))
+
+    def _floor_alt(self, lm: _Landmark, xyz: np.ndarray, levels: FloorLevels) -> float:
+        """Altitude (m) that decides a landmark's level: the mean altitude of the keyframes on
+        a plateau that observed it (a ceiling seen from below belongs to the lower level); for
+        a landmark seen only from ramps, the level its own height stands on."""
+        flat = [self._kf_alt[k] for k in lm.kf_ids if k < len(levels.flat) and levels.flat[k]]
+        if flat:
+            return float(np.mean(flat))
+        below = levels.altitudes[levels.altitudes <= xyz[2] + self.conf['floor_point_margin_m']]
+        if len(below):
+            return float(below.max())
+        return float(levels.altitudes.min()) if len(levels.altitudes) else float(xyz[2])
+
+    def _touch(self, lm: _Landmark, kid: int, ts: dict[int, float]) -> None:
+        """Landmark seen at keyframe ``kid``: refresh its smoother timestamp."""
+        if lm.last_kf in self._lm_by_ts:
+            self._lm_by_ts[lm.last_kf].discard(lm.lid)
+        lm.last_kf = kid
+        self._lm_by_ts.setdefault(kid, set()).add(lm.lid)
+        ts[L(lm.lid)] = self._ts(kid)
+
+    def _new_landmark(self, tid: int, tr: _Track, xyz: np.ndarray, kids: list[int],
+                      recs: list[_Rec], values: gtsam.Values, kid_now: int,
+                      ts: dict[int, float] | None = None, rays: np.ndarray | None = None
+                      ) -> int:
+        """Create landmark ``L(lid)`` of track ``tid`` at ``xyz`` (m) with bearing factors from
+        keyframes ``kids``; ``rays`` are those observations in the map frame if known."""
+        lid = self._next_lid
+        self._next_lid += 1
+        label = self._label_of(tr)
+        lm = _Landmark(lid, tid, label, bool(self._ground[label]), np.array(xyz, dtype=float))
+        values.insert(L(lid), np.array(xyz, dtype=float))
+        for k in kids:
+            b, px = tr.kf_obs[k]
+            rec = self._rec(fac.bearing_factor(X(k), L(lid), b, self._bnoise), 'bearing', k, lid,
+                            b, px)
+            recs.append(rec)
+            lm.rids.append(rec.rid)
+            self._observed(lm, k, b)
+        if rays is None:
+            rays = np.array([self._kf_T_wc[k][:3, :3] @ tr.kf_obs[k][0] for k in kids])
+        lm.ray0 = rays[0]
+        lm.max_par = float(angle_between(rays[:1], rays).max())
+        self._lms[lid] = lm
+        tr.lid = lid
+        lm.last_kf = kid_now
+        self._lm_by_ts.setdefault(kid_now, set()).add(lid)
+        if ts is not None:
+            ts[L(lid)] = self._ts(kid_now)
+        self.stats['landmarks'] += 1
+        return lid
+
+    def _triangulate(self, frame: Tracks, mappable: np.ndarray, kid: int, recs: list[_Rec],
+                     values: gtsam.Values, ts: dict[int, float]) -> list[int]:
+        c = self.conf
+        cands: list[tuple[int, list[int]]] = []
+        for i in np.flatnonzero(mappable).tolist():
+            tid = int(frame.track_id[i])
+            tr = self._tracks[tid]
+            if tr.lid >= 0 or tr.rejected:
+                continue
+            for k in [k for k in tr.kf_obs if k not in self._kfs]:
+                del tr.kf_obs[k]
+            if len(tr.kf_obs) >= c['lm_min_keyframes']:
+                cands.append((tid, sorted(tr.kf_obs)))
+        if not cands:
+            return []
+        index, centers, rays, obs_kid = [], [], [], []
+        for j, (tid, kids) in enumerate(cands):
+            tr = self._tracks[tid]
+            for k in kids:
+                T = self._kf_T_wc[k]
+                index.append(j)
+                centers.append(T[:3, 3])
+                rays.append(T[:3, :3] @ tr.kf_obs[k][0])
+                obs_kid.append(k)
+        index_a = np.array(index)
+        centers_a, rays_a = np.array(centers), np.array(rays)
+        min_par = np.radians(c['lm_min_parallax_deg'])
+        tri = triangulate_bearings(index_a, centers_a, rays_a, len(cands), min_par)
+        # second pass without grossly wrong rays (matcher outliers stored at a keyframe)
+        keep_obs = tri.error < 3 * self._gate
+        if not keep_obs.all():
+            tri2 = triangulate_bearings(index_a[keep_obs], centers_a[keep_obs],
+                                        rays_a[keep_obs], len(cands), min_par)
+        else:
+            tri2 = tri
+        depth = np.full(len(index_a), np.nan)
+        err = np.full(len(index_a), np.inf)
+        depth[keep_obs], err[keep_obs] = tri2.depth, tri2.error
+        good_obs = keep_obs & (err < self._gate) & (depth > c['lm_min_depth_m']) \
+            & (depth < c['lm_max_depth_m'])
+        n_good = np.bincount(index_a, weights=good_obs, minlength=len(cands))
+        n_all = np.bincount(index_a, minlength=len(cands))
+        accept = tri2.ok & (n_good >= c['lm_min_keyframes']) & (n_good >= n_all - 1)
+        acc = np.flatnonzero(accept)
+        if len(acc) > c['max_new_landmarks']:
+            px = np.array([self._tracks[cands[j][0]].kf_obs[kid][1] for j in acc])
+            acc = acc[self._spread(px, tri2.max_parallax[acc], c['max_new_landmarks'])]
+        new = []
+        for j in acc.tolist():
+            tid = cands[j][0]
+            rows = np.flatnonzero((index_a == j) & good_obs)
+            used = [obs_kid[o] for o in rows]
+            new.append(self._new_landmark(tid, self._tracks[tid], tri2.points[j], used, recs,
+                                          values, kid, ts, rays_a[rows]))
+        return new
+
+    def _add_ground_recs(self, kid: int, lids: list[int], recs: list[_Rec]) -> None:
+        mode = self.conf['ground_factor']
+        if mode == 'never' or (mode == 'auto' and self._kfs[kid].odom_linked):
+            return
+        lids = [lid for lid in lids if self._lms[lid].ground and self._lms[lid].alive]
+        if not lids:
+            return
+        c = self.conf
+        T_cw = se3_inv(self._kf_T_wc[kid])
+        P = np.array([self._lms[lid].xyz for lid in lids]) @ T_cw[:3, :3].T + T_cw[:3, 3]
+        height = P @ self._up_c  # along base z, relative to the camera (m, ~ -camera_height)
+        horiz = np.linalg.norm(P - height[:, None] * self._up_c, axis=1)  # from the nadir
+        near = (horiz <= c['ground_plane_radius_m']) \
+            & (np.abs(height + self.camera_height) < c['ground_gate_m'])
+        if near.sum() < c['ground_min_points']:
+            return
+        # The local plane must hold: a robust plane through the nearby ground landmarks that is
+        # parallel to the vehicle (not at a ramp transition); only its inliers get factors.
+        fit = fit_plane_ransac(P[near], c['ground_plane_threshold_m'], self._rng, iterations=40)
+        if fit is None or fit[2].sum() < c['ground_min_points']:
+            return
+        normal = fit[0] if fit[0] @ self._up_c > 0 else -fit[0]
+        if np.degrees(np.arccos(min(1.0, float(normal @ self._up_c)))) > c['ground_max_tilt_deg']:
+            return
+        inl = np.flatnonzero(near)[fit[2]]
+        inl = inl[horiz[inl] <= c['ground_max_distance_m']]
+        order = [lids[i] for i in inl[np.argsort(horiz[inl])]]
+        for lid in order[: self.conf['ground_max_per_keyframe']]:
+            f = fac.ground_factor(X(kid), L(lid), self._up_c, self.camera_height, self._gnoise)
+            rec = self._rec(f, 'ground', kid, lid)
+            recs.append(rec)
+            self._lms[lid].rids.append(rec.rid)
+
+    # ------------------------------------------------------------------------------------------
+    # GNSS
+    # ------------------------------------------------------------------------------------------
+
+    def _check_fix(self, fix: GnssFix | None, T_wc_pred: np.ndarray | None,
+                   events: list[str]) -> GnssFix | None:
+        """Covariance gate of a fix; returns it (with a floored covariance) or None."""
+        if fix is None:
+            return None
+        reason = None
+        pos = np.asarray(fix.position, dtype=np.float64).reshape(-1)
+        cov = None if fix.covariance is None else np.asarray(fix.covariance, dtype=np.float64)
+        if pos.shape != (3,) or not np.isfinite(pos).all():
+            reason = f'position must be 3 finite values (m), got {pos.shape}'
+        elif cov is None:
+            reason = 'missing covariance'
+        elif cov.shape != (3, 3) or not np.isfinite(cov).all():
+            reason = f'covariance must be a finite 3x3 (m^2), got shape {cov.shape}'
+        else:
+            cov = 0.5 * (cov + cov.T)
+            w, V = np.linalg.eigh(cov)
+            if w.min() <= 0:
+                reason = f'covariance not positive definite (eigenvalues {w.min():.3g}...)'
+            elif np.sqrt(w.max()) > self.conf['gnss_max_sigma_m']:
+                reason = (f'sigma {np.sqrt(w.max()):.2f} m above gnss_max_sigma_m '
+                          f'{self.conf["gnss_max_sigma_m"]}')
+            else:
+                w = np.maximum(w, self.conf['gnss_min_sigma_m'] ** 2)
+                cov = (V * w) @ V.T
+        if reason is None and self._gnss_aligned and T_wc_pred is not None:
+            T_wb = T_wc_pred @ self.T_cb
+            pred = T_wb[:3, :3] @ self._arm_b + T_wb[:3, 3]
+            d = pos - pred
+            S = cov + np.eye(3) * self.conf['gnss_gate_sigma_m'] ** 2
+            m2 = float(d @ np.linalg.solve(S, d))
+            if m2 > self.conf['gnss_gate_chi2']:
+                self._gnss_rejects += 1
+                if self._gnss_rejects >= self.conf['gnss_max_rejects']:
+                    events.append('gnss_gate_reopened')
+                    self._gnss_rejects = 0
+                else:
+                    reason = f'inconsistent with the estimate ({np.linalg.norm(d):.2f} m off)'
+        if reason is not None:
+            self.stats['gnss_rejected'] += 1
+            events.append(f'gnss_rejected: {reason}')
+            return None
+        self._gnss_rejects = 0
+        self.stats['gnss_accepted'] += 1
+        return GnssFix(int(fix.stamp_ns), pos, cov)
+
+    def _attach_gnss(self, kid: int, fix: GnssFix | None, recs: list[_Rec]) -> None:
+        """Attach this frame's fix (or the pending one, moved by the tracked motion)."""
+        T_wb = self._kf_T_wc[kid] @ self.T_cb
+        if fix is not None:
+            pos, cov = fix.position, fix.covariance
+        else:
+            p = self._gnss_pending
+            self._gnss_pending = None
+            if p is None or p.T_wb is None:
+                return
+            if (self._kf_stamps[kid] - p.stamp_ns) * 1e-9 > self.conf['gnss_max_age_s']:
+                return
+            ant_then = p.T_wb[:3, :3] @ self._arm_b + p.T_wb[:3, 3]
+            ant_now = T_wb[:3, :3] @ self._arm_b + T_wb[:3, 3]
+            pos = p.position + (ant_now - ant_then)
+            moved = float(np.linalg.norm(ant_now - ant_then))
+            cov = p.covariance + np.eye(3) * (0.02 + 0.02 * moved) ** 2
+        self._gnss_pending = None
+        if self._gnss_aligned:
+            f = fac.gnss_factor(X(kid), pos, cov, self._arm_c, 2.0)
+            recs.append(self._rec(f, 'gnss', kid))
+        else:
+            self._gnss_pairs.append((kid, pos, cov))
+            del self._gnss_pairs[:-500]  # bounded while waiting for enough spread to align
+
+    def _try_gnss_align(self, events: list[str]) -> None:
+        c = self.conf
+        pairs = self._gnss_pairs
+        if len(pairs) < c['gnss_align_min_fixes']:
+            return
+        dst = np.array([p[1] for p in pairs])
+        T_wb = np.array([self._kf_T_wc[p[0]] for p in pairs]) @ self.T_cb
+        src = np.einsum('kij,j->ki', T_wb[:, :3, :3], self._arm_b) + T_wb[:, :3, 3]
+        span = np.ptp(src[:, :2], axis=0)
+        if float(np.hypot(*span)) < c['gnss_align_min_span_m']:
+            return
+        keep = np.ones(len(pairs), bool)
+        for _ in range(3):
+            s, R, t = align_yaw(src[keep], dst[keep], not self._scale_from_odometry)
+            res = np.linalg.norm(s * src @ R.T + t - dst, axis=1)
+            rms = float(np.sqrt(np.mean(res[keep] ** 2)))
+            if rms <= c['gnss_align_max_rms_m']:
+                break
+            worst = int(np.argmax(np.where(keep, res, -1)))
+            keep[worst] = False
+            if keep.sum() < c['gnss_align_min_fixes']:
+                return
+        else:
+            return
+        if not 0.5 < s < 2.0:
+            return
+        self._apply_similarity(s, R, t)
+        self._gnss_aligned = True
+        events.append(f'gnss_aligned: rms {rms:.2f} m, scale {s:.3f}')
+        recs = [self._rec(fac.gnss_factor(X(k), pos, cov, self._arm_c, 2.0), 'gnss', k)
+                for (k, pos, cov), ok in zip(pairs, keep) if ok and k in self._kfs]
+        self._gnss_pairs = []
+        self._metric = True
+        if not (self._rebuild(recs, gtsam.Values(), {}, weak=False, events=events)
+                or self._rebuild(recs, gtsam.Values(), {}, weak=True, events=events)):
+            self._reset_window(self._last_kid, events)
+        self._estimate = self._smoother.calculateEstimate()
+        for kid in self._kfs:
+            if self._estimate.exists(X(kid)):
+                self._kf_T_wc[kid] = self._estimate.atPose3(X(kid)).matrix()
+
+    def _apply_similarity(self, s: float, R: np.ndarray, t: np.ndarray) -> None:
+        """Move the whole estimate by ``x -> s R x + t`` (map frame change, e.g. to ENU)."""
+        def move(T: np.ndarray) -> np.ndarray:
+            out = np.array(T)
+            out[:3, :3] = R @ T[:3, :3]
+            out[:3, 3] = s * R @ T[:3, 3] + t
+            return out
+
+        # the camera pose moves with the base: T_wc' = S T_wb T_bc; keep T_bc, scale positions
+        self._kf_T_wc = [move(T @ self.T_cb) @ self.T_bc for T in self._kf_T_wc]
+        self._kf_alt = [float((T @ self.T_cb)[2, 3]) for T in self._kf_T_wc]
+        values = gtsam.Values()
+        for kid in self._kfs:
+            values.insert(X(kid), gtsam.Pose3(self._kf_T_wc[kid]))
+        for lid, lm in self._lms.items():
+            xyz = self._estimate.atPoint3(L(lid)) if self._estimate.exists(L(lid)) else lm.xyz
+            lm.xyz = s * R @ xyz + t
+            values.insert(L(lid), lm.xyz)
+        self._estimate = values
+        for tr in self._tracks.values():
+            if tr.frozen is not None:
+                tr.frozen = s * R @ tr.frozen + t
+        self._final_xyz = {k: s * R @ v + t for k, v in self._final_xyz.items()}
+        self._history = [(st, move(T @ self.T_cb) @ self.T_bc) for st, T in self._history]
+        self._floors = None
+        levels = self.floor_levels()
+        self._voxels.transform(s, R, t, lambda z: int(levels.assign(np.array(z))))
+        if self._link is not None:
+            self._link['T_wc'] = move(self._link['T_wc'] @ self.T_cb) @ self.T_bc
+        p = self._gnss_pending
+        if p is not None and p.T_wb is not None:
+            p.T_wb = move(p.T_wb)
+
+    # ------------------------------------------------------------------------------------------
+    # smoother
+    # ------------------------------------------------------------------------------------------
+
+    def _ts(self, kid: int) -> float:
+        """Smoother timestamp of keyframe ``kid``: quantised to ``marginalize_every`` so that
+        old states leave the window in batches (one full re-elimination per batch instead of
+        one per keyframe)."""
+        m = self.conf['marginalize_every']
+        return float(kid // m * m)
+
+    def _make_smoother(self) -> gtsam.IncrementalFixedLagSmoother:
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(self.conf['relinearize_threshold'])
+        params.relinearizeSkip = self.conf['relinearize_skip']
+        params.findUnusedFactorSlots = True
+        return gtsam.IncrementalFixedLagSmoother(float(self.conf['window_keyframes']), params)
+
+    def _commit(self, recs: list[_Rec], values: gtsam.Values, ts: dict[int, float],
+                lids: list[int], kid: int, events: list[str]) -> None:
+        """Send a keyframe's factors to the smoother, then bookkeeping and outlier checks."""
+        live = [r for r in self._pending_recs
+                if all(self._estimate.exists(k) or values.exists(k) for k in r.factor.keys())]
+        for r in self._pending_recs:
+            if r not in live:
+                r.removed = True
+        recs = live + recs
+        self._pending_recs = []
+        remove = sorted(self._pending_remove & set(self._recs))
+        graph = gtsam.NonlinearFactorGraph()
+        for rec in recs:
+            graph.add(rec.factor)
+        try:
+            self._smoother.update(graph, values, ts, [self._recs[r].index for r in remove])
+            new_idx = list(self._smoother.getISAM2Result().getNewFactorsIndices())
+            for _ in range(self.conf['extra_iterations']):
+                self._smoother.update()
+        except _SOLVER_ERRORS as exc:
+            self.stats['update_failures'] += 1
+            events.append(f'update_failed: {_first_line(exc)}')
+            self._recover(recs, values, ts, kid, events)
+        else:
+            for r in remove:
+                self._drop_rec(r, removed=True)
+            self._pending_remove.clear()
+            for rec, i in zip(recs, new_idx):
+                rec.index = int(i)
+                self._register(rec)
+        self._after_update(kid, lids, events)
+
+    def _register(self, rec: _Rec) -> None:
+        self._recs[rec.rid] = rec
+        if rec.kid in self._kfs:
+            self._kfs[rec.kid].rids.append(rec.rid)
+
+    def _drop_rec(self, rid: int, removed: bool = False) -> None:
+        """Forget a record of the smoother's factors; ``removed``: the factor is rejected (an
+        outlier, a superseded prior), not merely marginalised, and leaves the full graph."""
+        rec = self._recs.pop(rid, None)
+        if rec is not None and removed:
+            rec.removed = True
+
+    def _recover(self, recs: list[_Rec], values: gtsam.Values, ts: dict[int, float], kid: int,
+                 events: list[str]) -> None:
+        """Rebuild the smoother after a failed update: first everything with weak priors, then
+        without this keyframe's new landmarks, then the new pose alone; never raises."""
+        new_lids = {int(gtsam.Symbol(k).index()) for k in values.keys()
+                    if chr(gtsam.Symbol(k).chr()) == 'l'}
+        if self._rebuild(recs, values, ts, weak=True, events=events):
+            self.stats['recoveries'] += 1
+            events.append('update_recovered')
+            return
+        for lid in new_lids:
+            self._forget_landmark(lid)
+        poses = self._only_poses(values)
+        pose_ts = {k: v for k, v in ts.items() if poses.exists(k)}
+        without = [r for r in recs if r.lid not in new_lids]
+        for attempt in (without, [r for r in without if r.kid == kid and r.kind == 'odom']):
+            if self._rebuild(attempt, poses, pose_ts, weak=True, events=events):
+                kept = {r.rid for r in attempt}
+                for r in recs:
+                    if r.rid not in kept:
+                        r.removed = True
+                self.stats['recoveries'] += 1
+                events.append('update_recovered')
+                return
+        for r in recs:
+            r.removed = True
+        self._reset_window(kid, events)
+
+    def _reset_window(self, kid: int, events: list[str]) -> None:
+        """Last resort: a fresh window holding only keyframe ``kid`` (the map so far is kept)."""
+        events.append('window_reset')
+        for lid in list(self._lms):
+            self._finalize_landmark(lid, self._lms[lid].xyz)
+        for k in list(self._kfs):
+            if k != kid:
+                del self._kfs[k]
+        self._recs.clear()
+        self._pending_remove.clear()
+        self._pending_recs = []
+        self._lm_by_ts.clear()
+        self._smoother = self._make_smoother()
+        T = self._kf_T_wc[kid]
+        rec = self._rec(fac.pose_prior(X(kid), T, self._prior_cov()), 'anchor', kid)
+        g = gtsam.NonlinearFactorGraph()
+        g.add(rec.factor)
+        v = gtsam.Values()
+        v.insert(X(kid), gtsam.Pose3(T))
+        try:
+            self._smoother.update(g, v, {X(kid): self._ts(kid)})
+        except _SOLVER_ERRORS as exc:  # nothing left to keep: start over from the next frames
+            events.append(f'smoother_reset: {_first_line(exc)}')
+            rec.removed = True
+            self._kfs.clear()
+            self._smoother = self._make_smoother()
+            self._estimate = gtsam.Values()
+            self._lose_tracking(self._kf_stamps[kid], None, events)
+            return
+        rec.index = 0
+        self._kfs[kid].rids = []
+        self._register(rec)
+        self._estimate = self._smoother.calculateEstimate()
+
+    def _only_poses(self, values: gtsam.Values) -> gtsam.Values:
+        out = gtsam.Values()
+        for k in values.keys():
+            if chr(gtsam.Symbol(k).chr()) == 'x':
+                out.insert(k, values.atPose3(k))
+        return out
+
+    def _forget_landmark(self, lid: int) -> None:
+        lm = self._lms.pop(lid, None)
+        if lm is None:
+            return
+        self._lm_by_ts.get(lm.last_kf, set()).discard(lid)
+        for rid in lm.rids:
+            self._drop_rec(rid, removed=True)
+        tr = self._tracks.get(lm.track)
+        if tr is not None:
+            tr.lid = -1
+
+    def _rebuild(self, new_recs: list[_Rec], new_values: gtsam.Values, new_ts: dict[int, float],
+                 weak: bool, events: list[str]) -> bool:
+        """A fresh smoother from the window's records and current estimates plus new items.
+
+        The marginal information of the old smoother is replaced by a prior on the oldest
+        window pose (and on landmarks left with fewer than two bearings); ``weak`` adds loose
+        priors on every variable so that the system is determined whatever failed.
+        """
+        c = self.conf
+        values = gtsam.Values()
+        ts: dict[int, float] = {}
+        for kid in self._kfs:
+            values.insert(X(kid), gtsam.Pose3(self._kf_T_wc[kid]))
+            ts[X(kid)] = self._ts(kid)
+        for lid, lm in self._lms.items():
+            key = L(lid)
+            xyz = self._estimate.atPoint3(key) if self._estimate.exists(key) else lm.xyz
+            values.insert(key, xyz)
+            ts[key] = self._ts(lm.last_kf)
+        for k in new_values.keys():
+            if not values.exists(k):
+                if chr(gtsam.Symbol(k).chr()) == 'x':
+                    values.insert(k, new_values.atPose3(k))
+                else:
+                    values.insert(k, new_values.atPoint3(k))
+        ts.update(new_ts)
+        keep = [r for rid, r in self._recs.items()
+                if rid not in self._pending_remove and r.kind not in ('anchor', 'prior')]
+        keep = [r for r in keep if all(values.exists(k) for k in r.factor.keys())]
+        new_ok = [r for r in new_recs if all(values.exists(k) for k in r.factor.keys())]
+        extra: list[_Rec] = []
+        # the two oldest window poses stand in for the lost marginal information (two poses
+        # also keep the scale of a camera-only map)
+        for n, k in enumerate(sorted(self._kfs)[:2]):
+            if n > 0 and new_values.exists(X(k)):
+                break
+            kind = 'prior' if k == 0 and not self._gnss_aligned else 'anchor'
+            extra.append(self._rec(fac.pose_prior(X(k), self._kf_T_wc[k], self._prior_cov()),
+                                   kind, k))
+        n_bear: dict[int, int] = {}
+        for r in keep + new_ok:
+            if r.kind == 'bearing':
+                n_bear[r.lid] = n_bear.get(r.lid, 0) + 1
+        for lid in self._lms:
+            if n_bear.get(lid, 0) < 2:
+                extra.append(self._rec(fac.point_prior(L(lid), values.atPoint3(L(lid)), 0.2),
+                                       'anchor', lid=lid))
+        if weak:
+            sr, sm = c['recovery_sigma_rad'], c['recovery_sigma_m']
+            cov = np.diag([sr**2] * 3 + [sm**2] * 3)
+            for k in values.keys():
+                sym = gtsam.Symbol(k)
+                if chr(sym.chr()) == 'x':
+                    extra.append(self._rec(fac.pose_prior(k, values.atPose3(k).matrix(), cov),
+                                           'recovery', int(sym.index())))
+                else:
+                    extra.append(self._rec(fac.point_prior(k, values.atPoint3(k), sm),
+                                           'recovery', lid=int(sym.index())))
+        recs = keep + new_ok + extra
+        graph = gtsam.NonlinearFactorGraph()
+        for r in recs:
+            graph.add(r.factor)
+        smoother = self._make_smoother()
+        try:
+            smoother.update(graph, values, ts)
+            idx = list(smoother.getISAM2Result().getNewFactorsIndices())
+        except _SOLVER_ERRORS as exc:
+            events.append(f'rebuild_failed: {_first_line(exc)}')
+            for r in extra:
+                r.removed = True
+            return False
+        self._smoother = smoother
+        kept = {r.rid for r in keep}
+        for rid, r in list(self._recs.items()):
+            if rid not in kept:  # outliers and superseded priors are rejected for good
+                self._drop_rec(rid, removed=rid in self._pending_remove
+                               or r.kind in ('anchor', 'prior'))
+        self._recs = {}
+        for kf in self._kfs.values():
+            kf.rids = []
+        for r, i in zip(recs, idx):
+            r.index = int(i)
+            self._register(r)
+            if r.lid in self._lms and r.kind in ('anchor', 'recovery'):
+                self._lms[r.lid].rids.append(r.rid)
+        self._pending_remove.clear()
+        for kid in {gtsam.Symbol(k).index() for k in new_values.keys()
+                    if chr(gtsam.Symbol(k).chr()) == 'x'}:
+            if kid in self._kfs:
+                self._kfs[kid].rids = [r.rid for r in recs if r.kid == kid]
+        return True
+
+    def _after_update(self, kid: int, lids: list[int], events: list[str]) -> None:
+        """Read the estimate, finalise marginalised states, check the new observations."""
+        old = self._estimate
+        self._estimate = self._smoother.calculateEstimate()
+        est = self._estimate
+        self._max_ts = max(self._max_ts, kid)
+        for k in list(self._kfs):
+            if est.exists(X(k)):
+                self._kf_T_wc[k] = est.atPose3(X(k)).matrix()
+                self._kf_alt[k] = float((self._kf_T_wc[k] @ self.T_cb)[2, 3])
+            else:  # marginalised: its last estimate stays in the trajectory
+                for rid in self._kfs[k].rids:
+                    self._drop_rec(rid)
+                del self._kfs[k]
+        cutoff = self._max_ts - self.conf['window_keyframes'] + self.conf['marginalize_every']
+        for t in [t for t in self._lm_by_ts if t <= cutoff]:
+            for lid in list(self._lm_by_ts[t]):
+                if not est.exists(L(lid)):
+                    lm = self._lms[lid]
+                    xyz = old.atPoint3(L(lid)) if old.exists(L(lid)) else lm.xyz
+                    self._finalize_landmark(lid, xyz)
+            if not self._lm_by_ts.get(t):
+                self._lm_by_ts.pop(t, None)
+        for lid in lids:
+            lm = self._lms.get(lid)
+            if lm is not None and est.exists(L(lid)):
+                lm.xyz = est.atPoint3(L(lid))
+        self._check_outliers(lids)
+        if self.conf['use_gnss'] and not self._gnss_aligned and self._gnss_pairs:
+            self._try_gnss_align(events)
+
+    def _finalize_landmark(self, lid: int, xyz: np.ndarray) -> None:
+        lm = self._lms.pop(lid)
+        self._lm_by_ts.get(lm.last_kf, set()).discard(lid)
+        for rid in lm.rids:
+            self._drop_rec(rid)
+        tr = self._tracks.get(lm.track)
+        if tr is not None and lm.alive:
+            tr.frozen = np.array(xyz)
+        if self.conf['keep_full_graph']:
+            self._final_xyz[lid] = np.array(xyz)
+        if self._publishable(lm):
+            levels = self.floor_levels()
+            alt = self._floor_alt(lm, xyz, levels)
+            self._voxels.insert(np.asarray(xyz), lm.label, lid, lm.n_obs, alt,
+                                int(levels.assign(np.array(alt))))
+
+    def _check_outliers(self, lids: list[int]) -> None:
+        """Chi-square test of the bearing factors of the landmarks just observed; factors
+        failing it are removed at the next update, landmarks left with < 2 are killed."""
+        rows = []
+        for lid in lids:
+            lm = self._lms.get(lid)
+            if lm is None or not lm.alive:
+                continue
+            for rid in lm.rids:
+                rec = self._recs.get(rid)
+                if rec is not None and rec.kind == 'bearing':
+                    rows.append((lid, rid, rec.kid))
+        if not rows:
+            return
+        lid_a = np.array([r[0] for r in rows])
+        T = np.array([self._kf_T_wc[r[2]] for r in rows])
+        P = np.array([self._lms[r[0]].xyz for r in rows])
+        b = np.array([self._recs[r[1]].bearing for r in rows])
+        px = np.array([self._recs[r[1]].pixel for r in rows])
+        p_c = np.einsum('nji,nj->ni', T[:, :3, :3], P - T[:, :3, 3])
+        bad = angle_between(p_c, b) > self._gate
+        proj, valid = self.camera.project(p_c)
+        err_px = np.where(valid, np.linalg.norm(proj - px, axis=1), 1e6)
+        uniq, inv = np.unique(lid_a, return_inverse=True)
+        n_good = np.bincount(inv, weights=~bad, minlength=len(uniq))
+        sum_px = np.bincount(inv, weights=np.where(bad, 0.0, err_px), minlength=len(uniq))
+        n_badv = np.bincount(inv, weights=bad, minlength=len(uniq)).astype(int)
+        mean_px = np.where(n_good > 0, sum_px / np.maximum(n_good, 1), np.inf)
+        for j, lid in enumerate(uniq.tolist()):
+            self._lms[lid].reproj_px = float(mean_px[j])
+        for j in np.flatnonzero(n_badv).tolist():
+            lid = int(uniq[j])
+            lm = self._lms[lid]
+            lm.n_bad += int(n_badv[j])
+            self.stats['outlier_factors'] += int(n_badv[j])
+            if n_good[j] < 2 or lm.n_bad > max(2, lm.n_obs // 2):
+                self._kill_landmark(lid)
+                continue
+            for r in np.flatnonzero((inv == j) & bad).tolist():
+                self._pending_remove.add(rows[r][1])
+                self._recs[rows[r][1]].removed = True
+                lm.n_obs -= 1
+
+    def _kill_landmark(self, lid: int) -> None:
+        """Remove an inconsistent landmark's factors; a loose prior keeps its variable
+        determined until it is marginalised. Its track never maps again."""
+        lm = self._lms[lid]
+        lm.alive = False
+        self.stats['landmarks_killed'] += 1
+        for rid in lm.rids:
+            if rid in self._recs:
+                self._pending_remove.add(rid)
+                self._recs[rid].removed = True
+        rec = self._rec(fac.point_prior(L(lid), lm.xyz, 10.0), 'dead', lid=lid)
+        lm.rids.append(rec.rid)
+        self._pending_recs.append(rec)
+        tr = self._tracks.get(lm.track)
+        if tr is not None:
+            tr.rejected = True

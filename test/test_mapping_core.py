@@ -1,0 +1,314 @@
+"""Mapping core without the smoother: geometry, floors, files, alignment, config, inputs."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from semfeat_ros.mapping import (
+    AlignmentError,
+    GnssFix,
+    MapperConfigError,
+    MapperInputError,
+    OdometryDelta,
+    PlyFormatError,
+    SemanticCloud,
+    Tracks,
+    TumFormatError,
+    align_umeyama,
+    ate_rmse,
+    default_conf,
+    detect_floors,
+    merge_conf,
+    read_ply,
+    read_tum,
+    write_ply,
+    write_tum,
+)
+from semfeat_ros.mapping import geometry as geo
+from semfeat_ros.mapping.cloud import VoxelMap
+from semfeat_ros.mapping.factors import ground_error
+
+
+def random_pose(rng: np.random.Generator, scale: float = 1.0) -> np.ndarray:
+    return geo.se3_exp(rng.normal(size=6) * scale)
+
+
+# ------------------------------------------------------------------------------------------------
+# geometry
+# ------------------------------------------------------------------------------------------------
+
+
+def test_se3_exp_log_roundtrip_and_adjoint() -> None:
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        xi = rng.normal(size=6)
+        xi[:3] *= 0.9  # keep the rotation angle below pi
+        T = geo.se3_exp(xi)
+        assert np.allclose(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-12)
+        assert np.allclose(geo.se3_log(T), xi, atol=1e-9)
+        # adjoint: T exp(xi) = exp(Ad xi) T
+        d = rng.normal(size=6) * 1e-3
+        assert np.allclose(T @ geo.se3_exp(d), geo.se3_exp(geo.adjoint(T) @ d) @ T, atol=1e-12)
+    R = geo.so3_exp(np.array([0.0, 0.0, np.pi - 1e-7]))
+    assert np.allclose(geo.so3_exp(geo.so3_log(R)), R, atol=1e-6)
+
+
+def test_quaternion_roundtrip() -> None:
+    rng = np.random.default_rng(1)
+    for _ in range(50):
+        R = geo.so3_exp(rng.normal(size=3) * 2)
+        q = geo.matrix_to_quaternion(R)
+        assert q[3] >= 0 and abs(np.linalg.norm(q) - 1) < 1e-12
+        assert np.allclose(geo.quaternion_to_matrix(q), R, atol=1e-12)
+
+
+def test_triangulation_rays_from_behind_the_camera() -> None:
+    rng = np.random.default_rng(2)
+    P = rng.uniform(-8, 8, (40, 3))
+    poses = [random_pose(rng, 0.5) for _ in range(3)]
+    idx, centers, rays = [], [], []
+    for T in poses:
+        for j, p in enumerate(P):
+            idx.append(j)
+            centers.append(T[:3, 3])
+            rays.append(geo.unit(p - T[:3, 3]))
+    tri = geo.triangulate_bearings(np.array(idx), np.array(centers), np.array(rays), len(P))
+    assert tri.ok.all()
+    assert np.allclose(tri.points, P, atol=1e-9)
+    assert (tri.depth > 0).all() and (tri.error < 1e-9).all()
+    # with a single ray a point is not triangulated
+    one = geo.triangulate_bearings(np.array([0]), np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]), 1)
+    assert not one.ok[0]
+
+
+def test_pose_refinement_full_sphere_with_outliers() -> None:
+    rng = np.random.default_rng(3)
+    T_true = random_pose(rng, 0.3)
+    P = rng.uniform(-10, 10, (150, 3))
+    b = geo.unit((P - T_true[:3, 3]) @ T_true[:3, :3])
+    assert (b[:, 2] < 0).sum() > 40  # many points behind the optical axis plane
+    b = geo.unit(b + rng.normal(0, 1e-3, b.shape))
+    b[:20] = geo.unit(rng.normal(size=(20, 3)))  # gross outliers
+    est = geo.refine_pose_bearings(T_true @ geo.se3_exp(rng.normal(size=6) * 0.05), P, b,
+                                 sigma=1e-3)
+    err = geo.se3_log(geo.se3_inv(T_true) @ est.T_w_c)
+    assert np.linalg.norm(err[:3]) < 1e-3 and np.linalg.norm(err[3:]) < 5e-3
+    assert est.inliers[20:].mean() > 0.95 and est.inliers[:20].sum() <= 2
+    assert est.covariance is not None and np.all(np.linalg.eigvalsh(est.covariance) > 0)
+
+
+def test_relative_pose_from_bearings_beyond_90_degrees() -> None:
+    rng = np.random.default_rng(4)
+    X = rng.uniform(-10, 10, (200, 3))
+    R = geo.so3_exp(np.array([0.02, 0.3, -0.05]))
+    t = np.array([0.2, 0.05, 1.0])
+    b1 = geo.unit(X)
+    b2 = geo.unit(X @ R.T + t)
+    b2[:20] = geo.unit(rng.normal(size=(20, 3)))
+    rp = geo.relative_pose_bearings(b1, b2, 2e-3, rng)
+    assert rp is not None
+    assert np.allclose(rp.R, R, atol=1e-9)
+    assert np.allclose(rp.t, t / np.linalg.norm(t), atol=1e-9)
+    assert rp.inliers[20:].mean() > 0.95 and rp.inliers[:20].sum() <= 2
+    assert geo.relative_pose_bearings(b1[:5], b2[:5], 2e-3, rng) is None
+
+
+def test_plane_fit_and_yaw_alignment() -> None:
+    rng = np.random.default_rng(5)
+    P = np.c_[rng.uniform(-5, 5, (100, 2)), np.full(100, -0.75)]
+    P[:10, 2] += rng.uniform(0.3, 1.0, 10)
+    n, d, inl = geo.fit_plane_ransac(P, 0.02, rng)
+    assert abs(abs(n[2]) - 1) < 1e-9 and abs(abs(d) - 0.75) < 1e-9
+    assert inl[10:].all() and not inl[:10].any()
+    src = rng.normal(size=(30, 3)) * 10
+    R = geo.rpy_matrix(0.0, 0.0, 1.1)
+    dst = 1.5 * src @ R.T + [3.0, -2.0, 1.0]
+    s, Rz, t = geo.align_yaw(src, dst, True)
+    assert abs(s - 1.5) < 1e-12 and np.allclose(Rz, R) and np.allclose(t, [3.0, -2.0, 1.0])
+
+
+def test_ground_factor_jacobians_match_finite_differences() -> None:
+    rng = np.random.default_rng(6)
+    T, p = random_pose(rng), rng.normal(size=3) * 3
+    up = geo.unit(rng.normal(size=3))
+    e0, H_pose, H_point = ground_error(T, p, up, 0.75)
+    h = 1e-7
+    num_pose = [(ground_error(T @ geo.se3_exp(np.eye(6)[i] * h), p, up, 0.75)[0] - e0) / h
+                for i in range(6)]
+    num_point = [(ground_error(T, p + np.eye(3)[i] * h, up, 0.75)[0] - e0) / h
+                 for i in range(3)]
+    assert np.allclose(H_pose[0], num_pose, atol=1e-5)
+    assert np.allclose(H_point[0], num_point, atol=1e-5)
+
+
+# ------------------------------------------------------------------------------------------------
+# evaluation
+# ------------------------------------------------------------------------------------------------
+
+
+def test_umeyama_exact_on_synthetic_sim3() -> None:
+    rng = np.random.default_rng(7)
+    est = rng.normal(size=(50, 3)) * 5
+    R = geo.so3_exp(np.array([0.3, -1.2, 2.0]))
+    gt = 2.5 * est @ R.T + np.array([10.0, -4.0, 3.0])
+    sim = align_umeyama(est, gt, with_scale=True)
+    assert abs(sim.s - 2.5) < 1e-12 and np.allclose(sim.R, R, atol=1e-12)
+    assert np.allclose(sim.t, [10.0, -4.0, 3.0], atol=1e-10)
+    assert ate_rmse(est, gt, with_scale=True) < 1e-10
+    # SE(3) cannot absorb the scale; without alignment the error is the raw distance
+    assert ate_rmse(est, gt, with_scale=False) > 1.0
+    rigid = est @ R.T + 1.0  # a rigid motion is undone exactly by the SE(3) alignment
+    assert ate_rmse(rigid, est, with_scale=False) < 1e-10
+    assert align_umeyama(rigid, est, with_scale=False).s == 1.0
+    assert ate_rmse(est, est + [0.0, 0.0, 0.3], align=False) == pytest.approx(0.3)
+    poses = np.tile(np.eye(4), (50, 1, 1))
+    poses[:, :3, 3] = est
+    assert ate_rmse(poses, gt) < 1e-10
+    with pytest.raises(AlignmentError, match='at least 3'):
+        align_umeyama(est[:2], gt[:2])
+    with pytest.raises(AlignmentError, match='identical'):
+        align_umeyama(np.zeros((5, 3)), gt[:5])
+
+
+# ------------------------------------------------------------------------------------------------
+# floors
+# ------------------------------------------------------------------------------------------------
+
+
+def test_floor_detection_two_levels_and_revisit() -> None:
+    s = np.arange(0, 120, 0.5)
+    z = np.interp(s, [0, 30, 50, 80, 100, 120], [0, 0, 3, 3, 0, 0])
+    P = np.c_[s, np.zeros_like(s), z]
+    levels = detect_floors(P, min_plateau_m=8.0)
+    assert np.allclose(levels.altitudes, [0.0, 3.0], atol=0.05)
+    assert list(levels.assign(np.array([0.1, 2.8, 1.4, -0.5]))) == [0, 1, 0, 0]
+    assert levels.flat[:50].all() and not levels.flat[(s > 33) & (s < 47)].any()
+    single = detect_floors(np.c_[s, s * 0, s * 0.2])  # all ramp: one level
+    assert len(single.altitudes) == 1
+    assert len(detect_floors(np.zeros((0, 3))).altitudes) == 0
+
+
+# ------------------------------------------------------------------------------------------------
+# files
+# ------------------------------------------------------------------------------------------------
+
+
+def make_cloud(n: int = 25) -> SemanticCloud:
+    rng = np.random.default_rng(8)
+    colors = rng.integers(0, 255, (19, 3), dtype=np.uint8)
+    return SemanticCloud.build(rng.normal(size=(n, 3)) * 10, rng.integers(0, 17, n),
+                               rng.integers(0, 3, n), rng.integers(0, 2**32 - 1, n),
+                               rng.integers(1, 70000, n), colors)
+
+
+@pytest.mark.parametrize('binary', [True, False])
+def test_ply_roundtrip(tmp_path, binary: bool) -> None:
+    cloud = make_cloud()
+    path = write_ply(tmp_path / 'map.ply', cloud, binary=binary)
+    header = path.read_bytes()[:600].decode('ascii', errors='replace')
+    for prop in ('x', 'y', 'z', 'red', 'green', 'blue', 'label', 'floor', 'landmark_id', 'n_obs'):
+        assert f' {prop}\n' in header
+    back = read_ply(path)
+    assert np.allclose(back.xyz, cloud.xyz, atol=1e-5)
+    for name in ('label', 'floor', 'landmark_id', 'n_obs', 'rgb'):
+        assert np.array_equal(getattr(back, name), getattr(cloud, name)), name
+    assert back.n_obs.max() == 65535  # clipped to uint16 on build
+    empty = read_ply(write_ply(tmp_path / 'empty.ply', SemanticCloud.empty(), binary=binary))
+    assert len(empty) == 0
+
+
+def test_ply_errors(tmp_path) -> None:
+    with pytest.raises(FileNotFoundError):
+        read_ply(tmp_path / 'missing.ply')
+    bad = tmp_path / 'bad.ply'
+    bad.write_bytes(b'not a ply')
+    with pytest.raises(PlyFormatError, match='not a PLY'):
+        read_ply(bad)
+    path = write_ply(tmp_path / 'map.ply', make_cloud())
+    bad.write_bytes(path.read_bytes()[:-10])
+    with pytest.raises(PlyFormatError, match='truncated'):
+        read_ply(bad)
+    bad.write_bytes(b'ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n1\n')
+    with pytest.raises(PlyFormatError, match='missing vertex properties'):
+        read_ply(bad)
+
+
+def test_tum_roundtrip(tmp_path) -> None:
+    rng = np.random.default_rng(9)
+    poses = np.array([random_pose(rng, 2.0) for _ in range(10)])
+    stamps = 1_700_000_000_123_456_789 + np.arange(10) * 33_333_333
+    back_stamps, back = read_tum(write_tum(tmp_path / 'traj.txt', stamps, poses))
+    assert np.array_equal(back_stamps, stamps)
+    assert np.allclose(back, poses, atol=1e-9)
+    with pytest.raises(TumFormatError, match='stamps but'):
+        write_tum(tmp_path / 'x.txt', stamps[:3], poses)
+    bad = tmp_path / 'bad.txt'
+    bad.write_text('1.0 2 3\n')
+    with pytest.raises(TumFormatError, match='8 columns'):
+        read_tum(bad)
+    bad.write_text('1.0 2 3 4 a 0 0 1\n')
+    with pytest.raises(TumFormatError, match='non-numeric'):
+        read_tum(bad)
+
+
+def test_voxel_map_bounds_points_and_keeps_floors_apart() -> None:
+    vm = VoxelMap(voxel_size=0.5, max_points=100)
+    vm.insert(np.array([0.1, 0.1, 0.1]), 0, 1, 3, 0.0, 0)
+    vm.insert(np.array([0.2, 0.2, 0.2]), 0, 2, 5, 0.0, 0)  # same voxel: more observations win
+    vm.insert(np.array([0.2, 0.2, 0.2]), 0, 3, 2, 3.0, 1)  # another floor: kept apart
+    xyz, label, lid, nobs, alt = vm.arrays()
+    assert sorted(lid.tolist()) == [2, 3] and len(vm) == 2
+    for i in range(300):
+        vm.insert(np.array([i, 0.0, 0.0]), 1, 100 + i, 3, 0.0, 0)
+    assert len(vm) == 100
+    assert vm.arrays()[2].min() >= 300  # the oldest voxels went first
+
+
+# ------------------------------------------------------------------------------------------------
+# config and inputs
+# ------------------------------------------------------------------------------------------------
+
+
+def test_default_conf_is_valid_and_validated() -> None:
+    conf = merge_conf()
+    assert conf == default_conf and conf is not default_conf
+    with pytest.raises(MapperConfigError, match='unknown mapping config key'):
+        merge_conf({'no_such_key': 1})
+    with pytest.raises(MapperConfigError, match='robust_kernel'):
+        merge_conf({'robust_kernel': 'tukey'})
+    with pytest.raises(MapperConfigError, match='window_keyframes'):
+        merge_conf({'window_keyframes': 0})
+    with pytest.raises(MapperConfigError, match='ground_labels'):
+        merge_conf({'ground_labels': 'road'})
+    with pytest.raises(MapperConfigError, match='lm_max_depth_m'):
+        merge_conf({'lm_min_depth_m': 50.0})
+
+
+def test_tracks_validation() -> None:
+    b = geo.unit(np.array([[0.0, 0.0, 1.0], [1.0, 0.0, -0.2], [np.nan, 0.0, 1.0]]))
+    tr = Tracks(5, np.array([3, 4, 5], np.uint32), b * 2.0, np.zeros((3, 2)),
+                np.array([0, 6, 7], np.uint8))
+    ok, dropped = tr.validated()
+    assert dropped == 1 and len(ok) == 2
+    assert np.allclose(np.linalg.norm(ok.bearing, axis=1), 1.0)
+    with pytest.raises(MapperInputError, match='duplicate'):
+        Tracks(5, np.array([1, 1]), b[:2], np.zeros((2, 2)), np.zeros(2)).validated()
+    with pytest.raises(MapperInputError, match=r'bearing: expected shape \(2, 3\)'):
+        Tracks(5, np.array([1, 2]), b[:2, :2], np.zeros((2, 2)), np.zeros(2)).validated()
+    with pytest.raises(MapperInputError, match='stamp_ns'):
+        Tracks(5.5, np.array([1]), b[:1], np.zeros((1, 2)), np.zeros(1)).validated()
+    arr = np.zeros(2, dtype=[('u', 'f4'), ('v', 'f4'), ('bx', 'f4'), ('by', 'f4'), ('bz', 'f4'),
+                             ('label', 'u1'), ('track_id', 'u4')])
+    arr['bz'], arr['track_id'] = 1.0, [7, 8]
+    assert Tracks.from_structured(arr, 9).validated()[0].track_id.tolist() == [7, 8]
+
+
+def test_odometry_validation() -> None:
+    d = OdometryDelta.from_se2(1.0, 0.1, 0.05, np.diag([1e-4, 1e-4, 1e-5]))
+    assert np.allclose(d.T[:3, 3], [1.0, 0.1, 0.0]) and np.isclose(d.covariance[2, 2], 1e-5)
+    assert np.isclose(d.covariance[3, 3], 1e-4) and d.covariance[5, 5] > 0
+    with pytest.raises(MapperInputError, match='positive definite'):
+        OdometryDelta.from_se2(1.0, 0.0, 0.0, np.zeros((3, 3)))
+    with pytest.raises(MapperInputError, match='orthonormal'):
+        OdometryDelta(np.diag([2.0, 1.0, 1.0, 1.0]), np.eye(6)).validated()
+    assert GnssFix(1, np.zeros(3), None).covariance is None

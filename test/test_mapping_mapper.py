@@ -1,0 +1,370 @@
+"""The incremental mapper on a small synthetic two-level garage (fisheye bearings beyond 90 deg).
+
+Each scenario drives the ~58 m garage once (module-scoped fixtures, a few seconds each) and is
+checked against ground truth and, for the camera-only run, against a batch Levenberg-Marquardt
+solution of the same factor graph.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from semfeat_ros.camera import Extrinsic, FisheyeCamera
+from semfeat_ros.labels import load_labels
+from semfeat_ros.mapping import (
+    GnssFix,
+    Mapper,
+    MapperInputError,
+    MapperResult,
+    StampOrderError,
+    Tracks,
+    align_umeyama,
+    ate_rmse,
+    read_ply,
+    read_tum,
+    write_ply,
+    write_tum,
+)
+from semfeat_ros.mapping.benchmark import benchmark_update_time
+from semfeat_ros.mapping.benchmark import cli as benchmark_cli
+from semfeat_ros.mapping.geometry import rpy_matrix
+from semfeat_ros.mapping.synthetic import DriveConfig, SyntheticDrive, garage_drive
+
+CAMERA = FisheyeCamera(640, 512, 186.7, 186.7, 320, 256, k=(0.02, -0.004, 0.0005, -0.0001),
+                       fov_deg=190)
+T_BASE_CAM = Extrinsic((3.7, 0.0, 0.75), (0.0, 0.12, 0.0)).T_base_cam
+LABELS = load_labels()
+T_ENU_MAP = np.eye(4)
+T_ENU_MAP[:3, :3] = rpy_matrix(0.0, 0.0, 0.7)
+T_ENU_MAP[:3, 3] = [100.0, -50.0, 20.0]
+
+
+@dataclass
+class Run:
+    mapper: Mapper
+    drive: SyntheticDrive
+    results: list[MapperResult] = field(default_factory=list)
+    gt: dict[int, np.ndarray] = field(default_factory=dict)
+    dynamic_tracks: int = 0
+
+    def trajectory(self, T_frame: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(estimated, ground-truth) keyframe base poses; GT optionally moved to another frame."""
+        stamps, est = self.mapper.trajectory()
+        gt = np.array([self.gt[s] for s in stamps])
+        if T_frame is not None:
+            gt = np.einsum('ij,kjl->kil', T_frame, gt)
+        return est, gt
+
+    def events(self) -> list[str]:
+        return [e for r in self.results for e in r.events]
+
+
+def drive_through(conf: DriveConfig, mapper: Mapper | None = None,
+                  mapper_conf: dict | None = None) -> Run:
+    drive = garage_drive(CAMERA, T_BASE_CAM, conf)
+    run = Run(mapper or Mapper(CAMERA, T_BASE_CAM, mapper_conf), drive)
+    dyn = LABELS.dynamic
+    for frame in drive.frames():
+        run.results.append(run.mapper.update(frame.tracks, frame.odometry, frame.gnss))
+        run.gt[frame.tracks.stamp_ns] = frame.T_map_base
+        run.dynamic_tracks += int(dyn[frame.tracks.label].sum())
+    return run
+
+
+@pytest.fixture(scope='module')
+def camera_only() -> Run:
+    return drive_through(DriveConfig(seed=1), mapper_conf={'keep_full_graph': True})
+
+
+@pytest.fixture(scope='module')
+def with_odometry() -> Run:
+    return drive_through(DriveConfig(odometry=True, seed=2))
+
+
+class SingleObservationLandmark(Mapper):
+    """Fault injection: at keyframe 12 one new landmark keeps a single bearing factor, which is
+    rank deficient, so gtsam's update raises IndeterminantLinearSystem (a RuntimeError)."""
+
+    def _triangulate(self, frame, mappable, kid, recs, values, ts):  # noqa: ANN001, ANN202
+        new = super()._triangulate(frame, mappable, kid, recs, values, ts)
+        if kid == 12 and new:
+            bearings = [r for r in recs if r.lid == new[0] and r.kind == 'bearing']
+            for rec in bearings[1:]:
+                recs.remove(rec)
+        return new
+
+
+class FailingSmoother:
+    """Raises like gtsam on the ``fail_at``-th update that carries factors."""
+
+    def __init__(self, smoother: object, fail_at: int) -> None:
+        self.smoother, self.fail_at, self.calls = smoother, fail_at, 0
+
+    def update(self, *args: object) -> object:
+        if args:
+            self.calls += 1
+            if self.calls == self.fail_at:
+                raise RuntimeError('Indeterminant linear system detected while working near '
+                                   'variable 8646911284551352340 (Symbol: x20).')
+        return self.smoother.update(*args)
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self.smoother, name)
+
+
+@pytest.fixture(scope='module')
+def with_failures() -> Run:
+    mapper = SingleObservationLandmark(CAMERA, T_BASE_CAM)
+    # the forced error comes first: a recovery replaces the smoother (and this wrapper)
+    mapper._smoother = FailingSmoother(mapper._smoother, fail_at=6)
+    conf = DriveConfig(seed=3, outlier_fraction=0.02, bursts={70: 0.4, 71: 0.4, 72: 0.4},
+                       drop_frames=frozenset(range(120, 126)))
+    return drive_through(conf, mapper)
+
+
+@pytest.mark.parametrize('n_fail', [4, 5])
+def test_every_rebuild_failing_resets_the_window_and_recovers(n_fail: int) -> None:
+    """4 failures: the update and its 3 rebuilds fail, the window is reset; 5: the reset fails
+    too, the smoother starts over and the mapper re-initialises. Never a crash."""
+    mapper = Mapper(CAMERA, T_BASE_CAM)
+    make = mapper._make_smoother
+    calls = {'n': 0}
+
+    class Flaky(FailingSmoother):  # updates 10..10+n_fail-1 fail on whatever smoother
+        def update(self, *args: object) -> object:
+            if args:
+                calls['n'] += 1
+                if 10 <= calls['n'] < 10 + n_fail:
+                    raise RuntimeError('\nIndeterminant linear system detected')
+            return self.smoother.update(*args)
+
+    mapper._make_smoother = lambda: Flaky(make(), fail_at=-1)
+    mapper._smoother = mapper._make_smoother()
+    run = drive_through(DriveConfig(seed=6), mapper)
+    events = run.events()
+    assert 'window_reset' in events
+    assert any(e.startswith('smoother_reset') for e in events) == (n_fail == 5)
+    assert ('reinitialised' in events) == (n_fail == 5)
+    assert mapper.state == 'tracking'
+    est, gt = run.trajectory()
+    # a re-initialised segment starts where constant velocity predicts it: looser
+    assert len(est) > 30 and ate_rmse(est, gt, with_scale=True) < (0.3 if n_fail == 4 else 1.0)
+
+
+@pytest.fixture(scope='module')
+def with_gnss() -> Run:
+    conf = DriveConfig(seed=4, odometry=True, gnss_every=2, T_enu_map=T_ENU_MAP,
+                       gnss_jumps={100: (15.0, 0.0, 0.0), 102: (0.0, 12.0, 0.0),
+                                   150: (0.0, 0.0, 8.0)})
+    return drive_through(conf)
+
+
+@pytest.fixture(scope='module')
+def tracking_gap() -> Run:
+    return drive_through(DriveConfig(seed=5, drop_frames=frozenset(range(100, 150))))
+
+
+# ------------------------------------------------------------------------------------------------
+
+
+def test_camera_only_trajectory_and_scale_from_ground_plane(camera_only: Run) -> None:
+    m = camera_only.mapper
+    est, gt = camera_only.trajectory()
+    assert m.metric and m.state == 'tracking' and len(est) > 40
+    assert ate_rmse(est, gt, with_scale=True) < 0.10
+    scale = align_umeyama(est, gt, with_scale=True).s
+    assert abs(scale - 1.0) < 0.02, scale  # metres without odometry or GNSS
+    assert ate_rmse(est, gt, with_scale=False) < 0.15
+    # fisheye observations beyond 90 degrees off-axis are in the graph
+    assert m.stats['obs_beyond_90deg'] > 100
+    # every frame got a pose once initialised, with a covariance while tracking
+    tracking = [r for r in camera_only.results if r.state == 'tracking']
+    assert len(tracking) > 0.9 * len(camera_only.results)
+    assert all(r.T_map_base is not None and r.covariance is not None for r in tracking)
+    assert all(np.all(np.linalg.eigvalsh(r.covariance) > 0) for r in tracking[::10])
+
+
+def test_incremental_matches_batch_solution(camera_only: Run) -> None:
+    est, gt = camera_only.trajectory()
+    batch, landmarks = camera_only.mapper.batch_optimize()
+    assert len(batch) == len(est) and len(landmarks) > 1000
+    # the full graph is consistent with the ground truth; the fixed-lag estimate (old states
+    # frozen at marginalisation) stays close to it
+    assert ate_rmse(batch, gt) < 0.05
+    assert ate_rmse(est, gt) < ate_rmse(batch, gt) + 0.05
+    assert np.abs(batch[:, :3, 3] - est[:, :3, 3]).max() < 0.25
+
+
+def test_map_points_match_ground_truth(camera_only: Run) -> None:
+    est, gt = camera_only.trajectory()
+    sim = align_umeyama(est, gt, with_scale=True)
+    cloud = camera_only.mapper.cloud()
+    assert len(cloud) > 800
+    world = camera_only.drive.world
+    err = np.full(len(cloud), np.inf)
+    xyz = sim.apply(cloud.xyz)
+    for label in np.unique(cloud.label):
+        tree = cKDTree(world.points[world.labels == label])
+        m = cloud.label == label
+        err[m] = tree.query(xyz[m])[0]
+    assert np.median(err) < 0.1 and np.percentile(err, 90) < 0.4
+    assert cloud.xyz.dtype == np.float32 and cloud.landmark_id.dtype == np.uint32
+    assert cloud.n_obs.dtype == np.uint16 and (cloud.n_obs >= 3).all()
+    assert np.array_equal(cloud.rgb, LABELS.colors[cloud.label])
+    assert len(np.unique(cloud.landmark_id)) == len(cloud)
+
+
+def test_floors_detected_and_every_landmark_assigned(camera_only: Run) -> None:
+    levels = camera_only.mapper.floor_levels()
+    assert len(levels.altitudes) == 2
+    assert np.allclose(levels.altitudes, [0.0, 3.0], atol=0.2), levels.altitudes
+    est, gt = camera_only.trajectory()
+    cloud = camera_only.mapper.cloud()
+    world = camera_only.drive.world
+    xyz = align_umeyama(est, gt, with_scale=True).apply(cloud.xyz)
+    nearest = cKDTree(world.points).query(xyz)[1]
+    ground = world.ground_alt[nearest]
+    gt_floor = np.abs(ground[:, None] - np.array([0.0, 3.0])).argmin(axis=1)
+    on_level = np.abs(ground - np.array([0.0, 3.0])[gt_floor]) < 0.1  # ramps are ambiguous
+    assert set(np.unique(cloud.floor)) == {0, 1} and on_level.mean() > 0.5
+    assert np.mean(cloud.floor[on_level] == gt_floor[on_level]) >= 0.95
+
+
+def test_dynamic_classes_never_mapped(camera_only: Run) -> None:
+    assert camera_only.dynamic_tracks > 500  # cars and pedestrians were tracked ...
+    cloud = camera_only.mapper.cloud()
+    assert not LABELS.dynamic[cloud.label].any()  # ... but never mapped
+    assert LABELS.static[cloud.label].all()
+
+
+def test_wheel_odometry_gives_metric_scale_and_altitude(with_odometry: Run) -> None:
+    est, gt = with_odometry.trajectory()
+    assert abs(align_umeyama(est, gt, with_scale=True).s - 1.0) < 0.01
+    assert ate_rmse(est, gt, with_scale=False) < 0.08
+    # altitude (pose z, no alignment) on and around the ramp
+    assert np.abs(est[:, 2, 3] - gt[:, 2, 3]).max() < 0.2
+    assert with_odometry.mapper.floor_levels().altitudes.shape == (2,)
+
+
+def test_failures_are_recovered_without_crash(with_failures: Run) -> None:
+    m = with_failures.mapper
+    events = with_failures.events()
+    assert m.stats['update_failures'] >= 2, m.stats  # forced error + real indeterminate system
+    assert events.count('update_recovered') >= 2
+    assert not any(e.startswith('window_reset') for e in events)
+    assert m.state == 'tracking'
+    est, gt = with_failures.trajectory()
+    assert ate_rmse(est, gt, with_scale=True) < 0.2
+    assert m.stats['outlier_factors'] > 0
+    assert len(m.cloud()) > 500
+
+
+def test_gnss_aligns_map_to_enu_and_rejects_jumps(with_gnss: Run) -> None:
+    m = with_gnss.mapper
+    events = with_gnss.events()
+    assert m.gnss_aligned and any(e.startswith('gnss_aligned') for e in events)
+    jumps = [e for e in events if e.startswith('gnss_rejected: inconsistent')]
+    assert len(jumps) == 3, jumps
+    est, gt = with_gnss.trajectory(T_ENU_MAP)
+    assert ate_rmse(est, gt, align=False) < 0.1  # the map frame is ENU now: no alignment
+    cloud = m.cloud()
+    assert np.linalg.norm(np.median(cloud.xyz, axis=0)[:2] - T_ENU_MAP[:2, 3]) < 60
+
+
+def test_gnss_arriving_late_moves_the_marginalised_map_too() -> None:
+    # covered deck first: the fixes start after 140 frames, long after the first states left
+    # the window; the alignment moves trajectory, window and voxel map into ENU together
+    conf = DriveConfig(seed=8, odometry=True, gnss_every=2, gnss_start=140, T_enu_map=T_ENU_MAP)
+    run = drive_through(conf)
+    first_fix_kf = next(i for i, r in enumerate(
+        [r for r in run.results if r.keyframe]) if r.stamp_ns >= run.drive.stamps_ns[140])
+    assert first_fix_kf > run.mapper.conf['window_keyframes']
+    assert run.mapper.gnss_aligned
+    est, gt = run.trajectory(T_ENU_MAP)
+    assert ate_rmse(est, gt, align=False) < 0.1
+    cloud = run.mapper.cloud()
+    world_enu = run.drive.world.points @ T_ENU_MAP[:3, :3].T + T_ENU_MAP[:3, 3]
+    dist = cKDTree(world_enu).query(cloud.xyz)[0]
+    assert np.median(dist) < 0.1
+
+
+def test_gnss_fixes_without_usable_covariance_are_rejected(camera_only: Run) -> None:
+    m = Mapper(CAMERA, T_BASE_CAM)
+    drive = camera_only.drive
+    frames = drive.frames()
+    bad = [None, np.zeros((3, 3)), np.eye(3) * 4.0, np.full((3, 3), np.nan)]
+    reasons = []
+    for cov in bad:
+        f = next(frames)
+        r = m.update(f.tracks, gnss=GnssFix(f.tracks.stamp_ns, np.zeros(3), cov))
+        reasons += [e for e in r.events if e.startswith('gnss_rejected')]
+    assert len(reasons) == 4
+    assert 'missing covariance' in reasons[0] and 'positive definite' in reasons[1]
+    assert 'gnss_max_sigma_m' in reasons[2] and 'finite' in reasons[3]
+    off = Mapper(CAMERA, T_BASE_CAM, {'use_gnss': False})
+    f = next(frames)
+    assert not off.update(f.tracks, gnss=GnssFix(f.tracks.stamp_ns, np.zeros(3), None)).events
+
+
+def test_tracking_loss_reinitialises_and_links_segments(tracking_gap: Run) -> None:
+    events = tracking_gap.events()
+    assert 'tracking_lost' in events and 'reinitialised' in events
+    m = tracking_gap.mapper
+    assert m.state == 'tracking' and m.stats['initialisations'] == 2
+    stamps, est = m.trajectory()
+    gap_start = tracking_gap.drive.stamps_ns[100]
+    assert (stamps > gap_start).sum() > 10  # the new segment kept mapping
+    assert np.all(np.diff(stamps) > 0)
+    lost = [r for r in tracking_gap.results if r.state == 'lost']
+    assert lost and all(r.covariance is None for r in lost)
+
+
+def test_window_stays_bounded(with_odometry: Run) -> None:
+    m = with_odometry.mapper
+    conf = m.conf
+    win = m.window()
+    assert win['keyframes'] <= conf['window_keyframes'] + conf['marginalize_every']
+    assert win['landmarks'] < 0.5 * m.stats['landmarks'] and win['map_points'] > 500
+    kf_ms = [r.update_ms for r in with_odometry.results if r.keyframe]
+    assert np.median(kf_ms) < 250  # generous: CI machines are shared; see the benchmark
+
+
+def test_benchmark_smoke() -> None:
+    res = benchmark_update_time(20, odometry=True, progress=False)
+    # the initialisation creates keyframes 0 and 1 in one update
+    assert res.keyframe.tolist() == list(range(1, 20)) and np.all(res.update_ms > 0)
+    assert np.all(res.update_cpu_ms > 0) and np.isfinite(res.ate_sim3_m)
+    assert res.buckets(10)[0][:2] == (0, 9)
+    assert benchmark_cli(['--keyframes', '3']) == 2
+
+
+def test_writers_roundtrip_mapper_output(camera_only: Run, tmp_path) -> None:
+    cloud = camera_only.mapper.cloud()
+    back = read_ply(write_ply(tmp_path / 'map.ply', cloud))
+    assert np.array_equal(back.landmark_id, cloud.landmark_id)
+    assert np.array_equal(back.floor, cloud.floor) and np.allclose(back.xyz, cloud.xyz)
+    stamps, poses = camera_only.mapper.trajectory()
+    s2, p2 = read_tum(write_tum(tmp_path / 'traj.txt', stamps, poses))
+    assert np.array_equal(s2, stamps) and np.allclose(p2, poses, atol=1e-8)
+
+
+def test_invalid_frames_raise_clear_errors(camera_only: Run) -> None:
+    m = Mapper(CAMERA, T_BASE_CAM)
+    frames = camera_only.drive.frames()
+    f = next(frames)
+    m.update(f.tracks)
+    with pytest.raises(StampOrderError, match='not after'):
+        m.update(f.tracks)
+    g = next(frames)
+    bad = Tracks(g.tracks.stamp_ns, g.tracks.track_id, g.tracks.bearing[:, :2], g.tracks.pixel,
+                 g.tracks.label)
+    with pytest.raises(MapperInputError, match='bearing'):
+        m.update(bad)
+    r = m.update(g.tracks)  # the mapper still works after rejected input
+    assert r.state == 'initializing'
+    m.reset()
+    assert m.state == 'initializing' and len(m.trajectory()[0]) == 0 and len(m.cloud()) == 0
+    assert m.update(g.tracks).state == 'initializing'  # stamps may restart after a reset
