@@ -12,6 +12,7 @@ PACKAGE = 'semfeat_ros'
 CONSOLE_SCRIPTS = [
     'feature_node = semfeat_ros.nodes.feature_node:main',
     'matcher_node = semfeat_ros.nodes.matcher_node:main',
+    'mapping_node = semfeat_ros.nodes.mapping_node:main',
     'semfeat-eval = semfeat_ros.tools.eval:cli',
     'semfeat-sim = semfeat_ros.tools.sim:cli',
     'semfeat-play = semfeat_ros.tools.play:cli',

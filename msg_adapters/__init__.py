@@ -8,7 +8,8 @@ naming the field and the expected vs actual value.
 
 Modules: :mod:`~msg_adapters.image` (Image, CompressedImage), :mod:`~msg_adapters.camera_info`,
 :mod:`~msg_adapters.point_cloud2` (any layout), :mod:`~msg_adapters.layouts` (the product
-layouts of the topic contract), :mod:`~msg_adapters.stamp`, :mod:`~msg_adapters.errors`.
+layouts of the topic contract), :mod:`~msg_adapters.stamp`, :mod:`~msg_adapters.nav`
+(Odometry, PoseStamped, Path, NavSatFix), :mod:`~msg_adapters.errors`.
 """
 from __future__ import annotations
 
@@ -66,6 +67,19 @@ from msg_adapters.layouts import (
     tracks_to_msg,
     unpack_rgb,
 )
+from msg_adapters.nav import (
+    GnssSample,
+    OdometrySample,
+    matrix_to_pose,
+    matrix_to_quaternion,
+    navsatfix_to_numpy,
+    odometry_from_numpy,
+    odometry_to_numpy,
+    path_from_numpy,
+    pose_stamped_to_numpy,
+    pose_to_matrix,
+    quaternion_to_matrix,
+)
 from msg_adapters.point_cloud2 import (
     DATATYPES,
     array_to_pointcloud2,
@@ -76,6 +90,9 @@ from msg_adapters.point_cloud2 import (
 from msg_adapters.stamp import header_info, make_header, ns_to_stamp, split_ns, stamp_to_ns
 
 __all__ = [
+    'GnssSample', 'OdometrySample', 'matrix_to_pose', 'matrix_to_quaternion',
+    'navsatfix_to_numpy', 'odometry_from_numpy', 'odometry_to_numpy', 'path_from_numpy',
+    'pose_stamped_to_numpy', 'pose_to_matrix', 'quaternion_to_matrix',
     'DATATYPES', 'DEFAULT_MAX_PIXELS', 'SEMANTIC_CLOUD_DTYPE', 'TRACKS_DTYPE',
     'ArrayShapeError', 'CameraInfoError', 'CompressedDecodeError', 'DataLengthError',
     'Features', 'ImageSizeError', 'ImageTooLargeError', 'LayoutMismatchError', 'MessageError',

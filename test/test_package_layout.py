@@ -5,6 +5,7 @@ import ast
 import os
 from pathlib import Path
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -98,28 +99,101 @@ def test_ros2_run_resolution(colcon_install: Path) -> None:
 
 
 def test_installed_node_comes_up(colcon_install: Path) -> None:
-    """Start the installed feature_node from the install space and see it join the graph."""
+    """Start the installed nodes from the install space: each logs 'ready', joins the graph and
+    keeps running."""
     env = sourced_env(colcon_install, 75)
-    exe = colcon_install / PKG / 'lib' / PKG / 'feature_node'
-    proc = subprocess.Popen([str(exe)], env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
+    procs = {name: subprocess.Popen([str(colcon_install / PKG / 'lib' / PKG / name)], env=env,
+                                    stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+             for name in NODES}
     probe = ('import rclpy, time\nrclpy.init()\nn = rclpy.create_node("probe")\n'
-             't = time.monotonic()\nfound = False\n'
-             'while time.monotonic() - t < 40 and not found:\n'
+             f't = time.monotonic()\nwant = set({NODES!r})\n'
+             'while time.monotonic() - t < 60 and not want <= set(n.get_node_names()):\n'
              '    rclpy.spin_once(n, timeout_sec=0.2)\n'
-             '    found = "feature_node" in n.get_node_names()\n'
-             'print("FOUND" if found else "MISSING")\n')
+             'print("FOUND" if want <= set(n.get_node_names()) else "MISSING")\n')
     try:
         out = subprocess.run([sys.executable, '-c', probe], env=env, capture_output=True,
-                             text=True, timeout=90).stdout
-        alive = proc.poll() is None
+                             text=True, timeout=120).stdout
+        time.sleep(3.0)  # a node that fails during start-up would be gone by now
+        alive = {name: p.poll() is None for name, p in procs.items()}
     finally:
-        proc.terminate()
-        try:
-            log, _ = proc.communicate(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            log, _ = proc.communicate()
-    assert alive, log
-    assert 'FOUND' in out, log
-    time.sleep(0.1)
+        logs = {}
+        for name, p in procs.items():
+            p.send_signal(signal.SIGINT)
+            try:
+                logs[name], _ = p.communicate(timeout=20)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                logs[name], _ = p.communicate()
+    for name in NODES:
+        assert alive[name], logs[name]
+        assert f'{name} ready' in logs[name], logs[name]
+        assert procs[name].returncode == 0, logs[name]  # clean exit on Ctrl-C
+    assert 'FOUND' in out, logs
+
+
+class _Recorder:
+    """Stand-in for a launch class: remembers its constructor arguments."""
+
+    made: list[_Recorder] = []
+
+    def __init__(self, *args, **kwargs):
+        self.args, self.kwargs = args, kwargs
+        _Recorder.made.append(self)
+
+
+def _load_launch_file(share: Path) -> list[_Recorder]:
+    """Execute launch/semfeat.launch.py with launch/launch_ros replaced by recorders."""
+    import importlib.util
+    import types
+
+    fake = {}
+    for mod, names in {
+        'launch': ['LaunchDescription'],
+        'launch.actions': ['DeclareLaunchArgument'],
+        'launch.substitutions': ['LaunchConfiguration', 'PathJoinSubstitution'],
+        'launch_ros.actions': ['Node'],
+        'launch_ros.substitutions': ['FindPackageShare'],
+    }.items():
+        m = types.ModuleType(mod)
+        for n in names:
+            setattr(m, n, type(n, (_Recorder,), {}))
+        fake[mod] = m
+    fake['launch_ros'] = types.ModuleType('launch_ros')
+    saved = {k: sys.modules.get(k) for k in fake}
+    sys.modules.update(fake)
+    _Recorder.made = []
+    try:
+        spec = importlib.util.spec_from_file_location('semfeat_launch',
+                                                      share / 'launch' / 'semfeat.launch.py')
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        module.generate_launch_description()
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                sys.modules.pop(k, None)
+            else:
+                sys.modules[k] = v
+    return _Recorder.made
+
+
+def test_launch_file_names_installed_things(colcon_install: Path) -> None:
+    """Every executable and parameter file the launch file names exists in the install."""
+    share = colcon_install / PKG / 'share' / PKG
+    made = _load_launch_file(share)
+    nodes = [r for r in made if type(r).__name__ == 'Node']
+    assert sorted(n.kwargs['executable'] for n in nodes) == sorted(NODES)
+    for node in nodes:
+        assert node.kwargs['package'] == PKG
+        assert (colcon_install / PKG / 'lib' / PKG / node.kwargs['executable']).is_file()
+        files = [p for p in node.kwargs['parameters'] if type(p).__name__ ==
+                 'PathJoinSubstitution']
+        assert len(files) == 1
+        parts = files[0].args[0]
+        assert parts[-1] == f'{node.kwargs["executable"]}.yaml'
+        assert (share / 'config' / parts[-1]).is_file()
+    # the default config_dir is <share of semfeat_ros>/config
+    config_arg = next(r for r in made if type(r).__name__ == 'DeclareLaunchArgument'
+                      and r.args[0] == 'config_dir')
+    default = config_arg.kwargs['default_value'].args[0]
+    assert default[0].args == (PKG,) and default[1] == 'config'

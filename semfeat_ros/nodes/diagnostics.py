@@ -3,8 +3,10 @@ from __future__ import annotations
 
 import math
 import time
+from typing import NoReturn
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+import rclpy.logging
 from rclpy.node import Node
 
 from semfeat_ros.runtime import Counters, LatencyStats, RateMeter
@@ -91,6 +93,13 @@ class NodeHealth:
         msg.header.stamp = self._node.get_clock().now().to_msg()
         msg.status = [self.status()]
         self._pub.publish(msg)
+
+
+def startup_failed(node_name: str, exc: BaseException) -> NoReturn:
+    """Report a node that cannot start (one clear line, no traceback) and exit with status 1."""
+    rclpy.logging.get_logger(node_name).fatal(f'cannot start: {exc}')
+    rclpy.try_shutdown()
+    raise SystemExit(1)
 
 
 def wall_time() -> float:

@@ -25,7 +25,7 @@ from msg_adapters.image import to_rgb_or_mono
 from semfeat_ros.camera import CameraModel
 from semfeat_ros.frontend import FrontendConfig, FrontendError, SemanticFrontend
 from semfeat_ros.labels import load_labels
-from semfeat_ros.nodes.diagnostics import NodeHealth, wall_time
+from semfeat_ros.nodes.diagnostics import NodeHealth, startup_failed, wall_time
 from semfeat_ros.nodes.params import declare_config, guard_updates, param
 from semfeat_ros.runtime import LatestWorker
 
@@ -178,7 +178,10 @@ def main(args: list[str] | None = None) -> None:
     rclpy.init(args=args)
     node = None
     try:
-        node = FeatureNode()
+        try:
+            node = FeatureNode()
+        except (OSError, ValueError) as exc:  # missing weights, bad parameters or config files
+            startup_failed('feature_node', exc)
         executor = MultiThreadedExecutor(num_threads=2)
         executor.add_node(node)
         executor.spin()

@@ -32,7 +32,7 @@ from semfeat_ros.camera import CameraModel
 from semfeat_ros.matching.draw import draw_track_result
 from semfeat_ros.matching.errors import MatchingError
 from semfeat_ros.matching.sequential import SequentialMatcher
-from semfeat_ros.nodes.diagnostics import NodeHealth, wall_time
+from semfeat_ros.nodes.diagnostics import NodeHealth, startup_failed, wall_time
 from semfeat_ros.nodes.params import declare_config, guard_updates, param
 from semfeat_ros.pipeline import frame_features
 from semfeat_ros.runtime import StampGuard
@@ -194,7 +194,10 @@ def main(args: list[str] | None = None) -> None:
     rclpy.init(args=args)
     node = None
     try:
-        node = MatcherNode()
+        try:
+            node = MatcherNode()
+        except (OSError, ValueError) as exc:  # missing weights, bad parameters or config files
+            startup_failed('matcher_node', exc)
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         executor.spin()

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from semfeat_ros.geodesy import enu_to_geodetic, geodetic_to_enu  # noqa: F401 (re-exported)
 from semfeat_ros.sim.errors import SimConfigError
 from semfeat_ros.sim.geometry import transform_points
 from semfeat_ros.sim.trajectory import Trajectory
@@ -31,39 +32,9 @@ from semfeat_ros.sim.world import World
 ANTENNA_OFFSET = np.array([1.2, 0.0, 1.5])
 """GNSS antenna position in base_link (m)."""
 
-_WGS84_A = 6378137.0
-_WGS84_E2 = 6.69437999014e-3
-
 STATUS_NO_FIX, STATUS_FIX, STATUS_SBAS_FIX, STATUS_GBAS_FIX = -1, 0, 1, 2
 SERVICE_GPS_GLONASS_GALILEO = 1 | 2 | 8
 COVARIANCE_TYPE_DIAGONAL_KNOWN = 2
-
-
-def _radii(lat_deg: float) -> tuple[float, float]:
-    """Meridional and prime-vertical radii of curvature (m) at a latitude."""
-    s = np.sin(np.radians(lat_deg))
-    w = np.sqrt(1.0 - _WGS84_E2 * s * s)
-    return _WGS84_A * (1.0 - _WGS84_E2) / w ** 3, _WGS84_A / w
-
-
-def enu_to_geodetic(enu: np.ndarray, origin: tuple[float, float, float]) -> np.ndarray:
-    """Map points (N, 3) m (x east, y north, z up) to (lat deg, lon deg, alt m)."""
-    lat0, lon0, alt0 = origin
-    m, n = _radii(lat0)
-    p = np.atleast_2d(np.asarray(enu, dtype=np.float64))
-    lat = lat0 + np.degrees(p[:, 1] / m)
-    lon = lon0 + np.degrees(p[:, 0] / (n * np.cos(np.radians(lat0))))
-    return np.stack([lat, lon, alt0 + p[:, 2]], axis=1)
-
-
-def geodetic_to_enu(geo: np.ndarray, origin: tuple[float, float, float]) -> np.ndarray:
-    """Inverse of :func:`enu_to_geodetic`."""
-    lat0, lon0, alt0 = origin
-    m, n = _radii(lat0)
-    g = np.atleast_2d(np.asarray(geo, dtype=np.float64))
-    x = np.radians(g[:, 1] - lon0) * n * np.cos(np.radians(lat0))
-    y = np.radians(g[:, 0] - lat0) * m
-    return np.stack([x, y, g[:, 2] - alt0], axis=1)
 
 
 @dataclass(frozen=True)

@@ -19,6 +19,7 @@ REPO = Path(__file__).resolve().parents[2]
 NODES: dict[str, tuple[str, str]] = {
     'feature_node': ('semfeat_ros.nodes.feature_node', 'FeatureNodeConfig'),
     'matcher_node': ('semfeat_ros.nodes.matcher_node', 'MatcherNodeConfig'),
+    'mapping_node': ('semfeat_ros.nodes.mapping_node', 'MappingNodeConfig'),
 }
 
 

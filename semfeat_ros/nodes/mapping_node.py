@@ -1,0 +1,285 @@
+"""mapping_node: tracks (+ wheel odometry, GNSS) -> poses with altitude, floors, /semantic_cloud.
+
+Feeds ``/semfeat/tracks`` into the incremental factor-graph mapper (GTSAM fixed-lag iSAM2 with
+bearing factors) together with the optional ``/vehicle/odom`` and ``/gnss/fix``; publishes
+``/semfeat/odometry`` (map -> base_link, z = altitude) and ``/semfeat/path`` every frame and the
+labeled map ``/semantic_cloud`` (latched, transient_local depth 1) at a bounded rate. The service
+``~/save_map`` (std_srvs/Trigger) writes ``cloud.ply`` (x y z rgb label floor landmark_id n_obs)
+and ``trajectory.tum`` into ``output_dir``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+import sys
+import threading
+from typing import Any
+
+from nav_msgs.msg import Odometry
+from nav_msgs.msg import Path as PathMsg
+import numpy as np
+import rclpy
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo, NavSatFix, PointCloud2
+from std_srvs.srv import Trigger
+
+from msg_adapters import (
+    camera_info_to_model,
+    navsatfix_to_numpy,
+    odometry_from_numpy,
+    odometry_to_numpy,
+    path_from_numpy,
+    semantic_cloud_to_msg,
+    tracks_from_msg,
+)
+from msg_adapters.errors import MessageError
+from semfeat_ros.camera import load_camera_yaml
+from semfeat_ros.mapping import write_ply, write_tum
+from semfeat_ros.mapping.errors import MappingError
+from semfeat_ros.mapping.session import MappingSession, SessionConfig
+from semfeat_ros.mapping.types import Tracks
+from semfeat_ros.nodes.diagnostics import NodeHealth, startup_failed, wall_time
+from semfeat_ros.nodes.params import declare_config, guard_updates, param
+from semfeat_ros.runtime import StampGuard
+
+
+@dataclass
+class MappingNodeConfig:
+    """Parameters of mapping_node (shipped as config/mapping_node.yaml)."""
+
+    tracks_topic: str = param('/semfeat/tracks', 'Input tracks (matcher_node output)',
+                              read_only=True)
+    camera_info_topic: str = param('/camera/front/camera_info', 'CameraInfo topic',
+                                   read_only=True)
+    odom_topic: str = param('/vehicle/odom', 'Wheel odometry (nav_msgs/Odometry)',
+                            read_only=True)
+    gnss_topic: str = param('/gnss/fix', 'GNSS fixes (sensor_msgs/NavSatFix)', read_only=True)
+    cloud_topic: str = param('/semantic_cloud', 'Labeled map (PointCloud2, latched)',
+                             read_only=True)
+    odometry_topic: str = param('/semfeat/odometry', 'Pose of base_link in map',
+                                read_only=True)
+    path_topic: str = param('/semfeat/path', 'Keyframe trajectory', read_only=True)
+    map_frame: str = param('map', 'Frame of the map (z up)', read_only=True)
+    base_frame: str = param('base_link', 'Vehicle frame', read_only=True)
+    camera_config: str = param('', 'Calibration YAML with the base_link -> camera extrinsic; '
+                               'empty = the shipped config/camera_front.yaml', read_only=True)
+    fov_deg: float = param(190.0, 'Field of view of the lens (deg, full cone)',
+                           range=(60.0, 240.0), read_only=True)
+    use_odometry: bool = param(True, 'Use wheel odometry when it is published', read_only=True)
+    use_gnss: bool = param(True, 'Use GNSS fixes (gated on their covariance)', read_only=True)
+    gnss_lever_arm_m: list[float] = param([1.2, 0.0, 1.5], 'GNSS antenna in base_link (m)',
+                                          read_only=True)
+    window_keyframes: int = param(15, 'Keyframes in the fixed-lag smoother', range=(3, 200),
+                                  read_only=True)
+    kf_parallax_deg: float = param(4.0, 'Parallax that makes a new keyframe (deg)',
+                                   range=(0.1, 45.0), read_only=True)
+    kf_max_distance_m: float = param(1.0, 'Distance that makes a new keyframe (m)',
+                                     range=(0.05, 100.0), read_only=True)
+    bearing_sigma_px: float = param(1.0, 'Keypoint noise (px)', range=(0.05, 20.0),
+                                    read_only=True)
+    voxel_size_m: float = param(0.1, 'Voxel size bounding the published map (m)',
+                                range=(0.01, 5.0), read_only=True)
+    odom_sigma_per_m: float = param(0.02, 'Wheel odometry translation noise (m per m)',
+                                    range=(1e-5, 1.0), read_only=True)
+    odom_sigma_rad_per_rad: float = param(0.02, 'Wheel odometry rotation noise (rad per rad)',
+                                          range=(1e-5, 1.0), read_only=True)
+    cloud_period_s: float = param(1.0, 'Period of /semantic_cloud (s): the full map, latched',
+                                  range=(0.05, 3600.0), read_only=True)
+    output_dir: str = param('semfeat_map', '~/save_map writes cloud.ply and trajectory.tum here',
+                            read_only=True)
+    diagnostics_period_s: float = param(1.0, 'Period of /diagnostics (s)', range=(0.1, 60.0),
+                                        read_only=True)
+
+
+def mapper_conf(c: MappingNodeConfig) -> dict[str, Any]:
+    """The mapping core's conf for the node parameters."""
+    return {'use_odometry': c.use_odometry, 'use_gnss': c.use_gnss,
+            'gnss_lever_arm_m': list(c.gnss_lever_arm_m),
+            'window_keyframes': c.window_keyframes, 'kf_parallax_deg': c.kf_parallax_deg,
+            'kf_max_distance_m': c.kf_max_distance_m, 'bearing_sigma_px': c.bearing_sigma_px,
+            'voxel_size_m': c.voxel_size_m}
+
+
+def session_conf(c: MappingNodeConfig) -> SessionConfig:
+    return SessionConfig(odom_sigma_per_m=c.odom_sigma_per_m,
+                         odom_sigma_rad_per_rad=c.odom_sigma_rad_per_rad)
+
+
+class MappingNode(Node):
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__('mapping_node', **kwargs)
+        self.conf = c = declare_config(self, MappingNodeConfig)
+        guard_updates(self, MappingNodeConfig)
+        self.health = NodeHealth(self)
+        _, extrinsic = load_camera_yaml(c.camera_config or None)
+        self.T_base_cam = extrinsic.T_base_cam
+        self.session: MappingSession | None = None
+        self._camera_key: tuple | None = None
+        self._lock = threading.Lock()
+        self.stamps = StampGuard()
+        self._dirty = False
+        self.last_result = None
+
+        self.create_subscription(PointCloud2, c.tracks_topic, self._on_tracks, QoSProfile(
+            depth=10, reliability=ReliabilityPolicy.RELIABLE))
+        self.create_subscription(CameraInfo, c.camera_info_topic, self._on_camera_info, 10)
+        if c.use_odometry:
+            self.create_subscription(Odometry, c.odom_topic, self._on_odom, 50)
+        if c.use_gnss:
+            self.create_subscription(NavSatFix, c.gnss_topic, self._on_gnss, 20)
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.pub_cloud = self.create_publisher(PointCloud2, c.cloud_topic, latched)
+        self.pub_odom = self.create_publisher(Odometry, c.odometry_topic, 10)
+        self.pub_path = self.create_publisher(PathMsg, c.path_topic, latched)
+        self.create_service(Trigger, '~/save_map', self._on_save_map)
+        self.create_timer(c.cloud_period_s, self._publish_cloud)
+        self.create_timer(c.diagnostics_period_s, self._publish_diagnostics)
+        self.get_logger().info(f'mapping_node ready: {c.tracks_topic} -> {c.cloud_topic}')
+
+    # -- inputs -----------------------------------------------------------------------------
+    def _on_camera_info(self, msg: CameraInfo) -> None:
+        try:
+            camera = camera_info_to_model(msg, fov_deg=self.conf.fov_deg)
+        except MessageError as exc:
+            self.health.on_reject(f'camera_info: {exc}')
+            return
+        key = (camera, msg.header.frame_id)
+        if key == self._camera_key:
+            return
+        with self._lock:
+            if self.session is not None:
+                self.get_logger().warning('camera changed: the map restarts')
+            self._camera_key = key
+            self.session = MappingSession(camera, self.T_base_cam, mapper_conf(self.conf),
+                                          session_conf(self.conf))
+            self.stamps.reset()
+
+    def _on_odom(self, msg: Odometry) -> None:
+        try:
+            sample = odometry_to_numpy(msg)
+            with self._lock:
+                if self.session is not None:
+                    self.session.add_odometry(sample.stamp_ns, sample.T)
+        except (MessageError, MappingError) as exc:
+            self.health.on_reject(f'odometry: {exc}')
+
+    def _on_gnss(self, msg: NavSatFix) -> None:
+        try:
+            fix = navsatfix_to_numpy(msg)
+            if not fix.has_fix:
+                return
+            with self._lock:
+                if self.session is not None:
+                    self.session.add_gnss(fix.stamp_ns, (fix.latitude, fix.longitude,
+                                                         fix.altitude), fix.covariance)
+        except (MessageError, MappingError) as exc:
+            self.health.on_reject(f'gnss: {exc}')
+
+    def _on_tracks(self, msg: PointCloud2) -> None:
+        self.health.on_input()
+        t0 = wall_time()
+        try:
+            tr = tracks_from_msg(msg)
+        except MessageError as exc:
+            self.health.on_reject(f'tracks: {exc}')
+            return
+        with self._lock:
+            if self.session is None:
+                self.health.on_reject('no CameraInfo received yet; tracks skipped')
+                return
+            order = self.stamps.check(tr.stamp_ns)
+            if order == 'duplicate':
+                self.health.on_reject(f'tracks with a repeated stamp {tr.stamp_ns} ns skipped')
+                return
+            if order == 'backwards':
+                self.get_logger().warning('time went backwards (bag loop?): the map restarts')
+                self.session.reset()
+            tracks = Tracks(tr.stamp_ns, tr.track_ids.astype(np.int64),
+                            tr.bearings.astype(np.float64), tr.uv.astype(np.float64),
+                            tr.labels)
+            try:
+                result = self.session.process(tracks)
+            except MappingError as exc:
+                self.health.on_reject(f'mapper: {exc}')
+                return
+            self.last_result = result
+            self._dirty = self._dirty or result.keyframe
+            stamps, poses = self.session.mapper.trajectory()
+        if result.T_map_base is not None:
+            cov = None
+            if result.covariance is not None:  # (rot, trans) -> ROS (trans, rot)
+                order = [3, 4, 5, 0, 1, 2]
+                cov = result.covariance[np.ix_(order, order)]
+            self.pub_odom.publish(odometry_from_numpy(
+                result.T_map_base, cov, stamp_ns=tr.stamp_ns, frame_id=self.conf.map_frame,
+                child_frame_id=self.conf.base_frame, msg_cls=Odometry))
+        if result.keyframe and len(stamps):
+            self.pub_path.publish(path_from_numpy(stamps, poses, frame_id=self.conf.map_frame,
+                                                  msg_cls=PathMsg, stamp_ns=tr.stamp_ns))
+        self.health.on_output(tr.stamp_ns, wall_time() - t0)
+        self.health.extra.update(state=result.state, metric=str(result.metric),
+                                 landmarks=str(result.n_landmarks),
+                                 update_ms=f'{result.update_ms:.1f}')
+
+    # -- outputs ----------------------------------------------------------------------------
+    def _publish_cloud(self) -> None:
+        with self._lock:
+            if self.session is None or not self._dirty:
+                return
+            self._dirty = False
+            cloud = self.session.mapper.cloud()
+            stamp = self.last_result.stamp_ns if self.last_result is not None else 0
+        self.pub_cloud.publish(semantic_cloud_to_msg(
+            cloud.xyz, cloud.rgb, cloud.label, cloud.floor, cloud.landmark_id, cloud.n_obs,
+            stamp_ns=stamp, frame_id=self.conf.map_frame, msg_cls=PointCloud2))
+        self.health.extra.update(cloud_points=str(len(cloud.xyz)),
+                                 floors=str(len(np.unique(cloud.floor))))
+
+    def _on_save_map(self, request: Trigger.Request, response: Trigger.Response
+                     ) -> Trigger.Response:
+        out = Path(self.conf.output_dir).expanduser().resolve()
+        with self._lock:
+            if self.session is None:
+                response.success, response.message = False, 'no map yet (no CameraInfo)'
+                return response
+            cloud = self.session.mapper.cloud()
+            stamps, poses = self.session.mapper.trajectory()
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+            ply = write_ply(out / 'cloud.ply', cloud)
+            tum = write_tum(out / 'trajectory.tum', stamps, poses)
+        except OSError as exc:
+            response.success, response.message = False, f'cannot write to {out}: {exc}'
+            return response
+        response.success = True
+        response.message = f'wrote {ply} ({len(cloud.xyz)} points) and {tum} ({len(stamps)} poses)'
+        return response
+
+    def _publish_diagnostics(self) -> None:
+        self.health.publish()
+
+
+def main(args: list[str] | None = None) -> None:
+    rclpy.init(args=args)
+    node = None
+    try:
+        try:
+            node = MappingNode()
+        except (OSError, ValueError) as exc:  # missing weights, bad parameters or config files
+            startup_failed('mapping_node', exc)
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main(sys.argv)

@@ -1,0 +1,138 @@
+"""mapping_node in-process on the synthetic two-level garage: poses, latched cloud, service."""
+from __future__ import annotations
+
+from pathlib import Path
+import threading
+import time
+
+from nav_msgs.msg import Odometry
+import numpy as np
+import pytest
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo, PointCloud2
+from std_srvs.srv import Trigger
+
+from msg_adapters import (
+    model_to_camera_info,
+    odometry_from_numpy,
+    odometry_to_numpy,
+    pointcloud2_to_array,
+    semantic_cloud_from_msg,
+    tracks_to_msg,
+)
+from semfeat_ros.camera import FisheyeCamera, load_camera_yaml
+from semfeat_ros.labels import load_labels
+from semfeat_ros.mapping import align_umeyama
+from semfeat_ros.mapping.synthetic import DriveConfig, garage_drive
+
+CAM = FisheyeCamera(640, 512, 186.7, 186.7, 320.0, 256.0, k=(0.02, -0.004, 0.0005, -0.0001),
+                    fov_deg=190)
+
+
+def planar(T: np.ndarray) -> np.ndarray:
+    """What a wheel odometry reports: x, y, yaw of the pose, z = 0."""
+    yaw = np.arctan2(T[1, 0], T[0, 0])
+    P = np.eye(4)
+    P[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
+    P[:2, 3] = T[:2, 3]
+    return P
+
+
+@pytest.mark.ros_domain(96)
+def test_mapping_node_on_synthetic_garage(isolated_ros, tmp_path: Path) -> None:
+    from semfeat_ros.nodes.mapping_node import MappingNode
+
+    _, ext = load_camera_yaml()
+    drive = garage_drive(CAM, ext.T_base_cam, DriveConfig(seed=3))
+    rclpy.init()
+    node = MappingNode(parameter_overrides=[
+        Parameter('output_dir', value=str(tmp_path / 'map')),
+        Parameter('cloud_period_s', value=0.2), Parameter('use_gnss', value=False)])
+    probe = Node('probe_mapping')
+    poses: list[Odometry] = []
+    probe.create_subscription(Odometry, '/semfeat/odometry', poses.append, 500)
+    pub_tracks = probe.create_publisher(PointCloud2, '/semfeat/tracks', QoSProfile(
+        depth=500, reliability=ReliabilityPolicy.RELIABLE))
+    pub_info = probe.create_publisher(CameraInfo, '/camera/front/camera_info', 10)
+    pub_odom = probe.create_publisher(Odometry, '/vehicle/odom', 500)
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    executor.add_node(probe)
+    thread = threading.Thread(target=executor.spin, daemon=True)
+    thread.start()
+
+    def wait(cond, timeout: float = 60.0) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline and not cond():
+            time.sleep(0.01)
+        return cond()
+
+    try:
+        assert wait(lambda: pub_tracks.get_subscription_count() > 0
+                    and pub_info.get_subscription_count() > 0
+                    and pub_odom.get_subscription_count() > 0)
+        pub_info.publish(model_to_camera_info(CAM, stamp_ns=0, frame_id='camera_front_optical',
+                                              msg_cls=CameraInfo))
+        assert wait(lambda: node.session is not None)
+        gt = {}
+        n = 0
+        for frame in drive.frames():
+            s = frame.tracks.stamp_ns
+            gt[s] = frame.T_map_base
+            pub_odom.publish(odometry_from_numpy(planar(frame.T_map_base), np.eye(6) * 1e-4,
+                                                 stamp_ns=s, frame_id='odom',
+                                                 child_frame_id='base_link', msg_cls=Odometry))
+            tr = frame.tracks
+            pub_tracks.publish(tracks_to_msg(
+                tr.pixel, tr.bearing, tr.label, tr.track_id, np.full(len(tr), 2),
+                np.ones(len(tr)), stamp_ns=s, frame_id='camera_front_optical',
+                msg_cls=PointCloud2))
+            n += 1
+            assert wait(lambda k=n: node.health.counters.processed >= k, 30)
+        assert node.health.counters.rejected == 0
+        assert wait(lambda: len(poses) >= n * 0.8)
+        est = {}
+        for m in poses:
+            s = odometry_to_numpy(m)
+            est[s.stamp_ns] = s.T
+        common = sorted(set(est) & set(gt))
+        E = np.array([est[s][:3, 3] for s in common])
+        G = np.array([gt[s][:3, 3] for s in common])
+        sim = align_umeyama(E, G, with_scale=True)
+        err = np.linalg.norm(sim.apply(E) - G, axis=1)
+        assert np.sqrt(np.mean(err**2)) < 0.3, f'ATE {np.sqrt(np.mean(err**2)):.3f} m'
+        assert abs(sim.s - 1.0) < 0.05  # metric from wheel odometry
+
+        # A late subscriber still gets the latched map.
+        clouds: list[PointCloud2] = []
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        probe.create_subscription(PointCloud2, '/semantic_cloud', clouds.append, latched)
+        assert wait(lambda: len(clouds) >= 1, 20)
+        msg = clouds[-1]
+        assert msg.header.frame_id == 'map'
+        names = [f.name for f in msg.fields]
+        assert names == ['x', 'y', 'z', 'rgb', 'label', 'floor', 'landmark_id', 'n_obs']
+        cloud = semantic_cloud_from_msg(msg)
+        labels = load_labels()
+        assert len(cloud.xyz) > 200
+        assert labels.static[cloud.labels].all()
+        assert len(np.unique(cloud.floors)) >= 2
+        assert np.isfinite(pointcloud2_to_array(msg)['x']).all()
+
+        client = probe.create_client(Trigger, '/mapping_node/save_map')
+        assert client.wait_for_service(timeout_sec=10)
+        future = client.call_async(Trigger.Request())
+        assert wait(future.done, 30)
+        assert future.result().success, future.result().message
+        assert (tmp_path / 'map' / 'cloud.ply').stat().st_size > 1000
+        assert len((tmp_path / 'map' / 'trajectory.tum').read_text().splitlines()) > 10
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        probe.destroy_node()
+        rclpy.try_shutdown()
