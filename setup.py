@@ -17,13 +17,15 @@ CONSOLE_SCRIPTS = [
     'semfeat-sim = semfeat_ros.tools.sim:cli',
     'semfeat-play = semfeat_ros.tools.play:cli',
     'semfeat-record = semfeat_ros.tools.record:cli',
+    'semfeat-train = semfeat_ros.tools.train:cli',
 ]
 
 setup(
     name=PACKAGE,
     version='0.1.0',
     packages=find_packages(exclude=['test', 'test.*']),
-    package_data={PACKAGE: ['weights/*.safetensors', 'weights/*.json', 'weights/*.md']},
+    package_data={PACKAGE: ['weights/*.safetensors', 'weights/*.json', 'weights/*.md',
+                           'weights/*.png']},
     data_files=[
         ('share/ament_index/resource_index/packages', [f'resource/{PACKAGE}']),
         (f'share/{PACKAGE}', ['package.xml']),

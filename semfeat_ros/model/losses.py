@@ -1,0 +1,213 @@
+"""Losses of the paper: BCE on the keypoint heatmap, contrastive margin loss on descriptors,
+cross-entropy on segmentation, and their weighted sum.
+
+All three are *means* over the terms the paper sums (valid pixels, pairs, labelled pixels), so
+the task weights do not depend on the image size or the number of sampled points.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+import torch.nn.functional as F  # noqa: N812 - the usual torch alias
+
+from semfeat_ros.model.errors import ModelConfigError, ModelInputError
+from semfeat_ros.model.semfeatnet import KP_STRIDE
+
+IGNORE_LABEL = 255
+"""Label value excluded from the segmentation loss (outside the image circle, unlabelled)."""
+
+default_loss_conf: dict[str, Any] = {
+    'w_kp': 1.0,  # alpha of L_total = alpha L_kp + beta L_desc + gamma L_seg
+    'w_desc': 1.0,  # beta
+    'w_seg': 0.5,  # gamma
+    'kp_pos_weight': 20.0,  # BCE weight of positive (keypoint) pixels; ~1% of pixels are positive
+    'desc_pos_margin': 1.0,  # m: positives are penalised by max(0, m - cos)
+    'desc_neg_margin': 0.2,  # alpha (paper): negatives are penalised by max(0, cos - alpha)
+    'desc_neg_radius': 8.0,  # px (input resolution): candidates closer than this are not negatives
+    'seg_full_resolution': False,  # CE at the label resolution (paper) or at the logit stride
+}
+
+
+def keypoint_loss(logits: torch.Tensor, target: torch.Tensor, valid: torch.Tensor | None = None,
+                  pos_weight: float = 1.0) -> torch.Tensor:
+    """Binary cross-entropy between the heatmap and the ground-truth keypoint map (paper eq. 6).
+
+    Args:
+        logits: (B, 1, H, W) or (B, H, W) pre-sigmoid heatmap logits.
+        target: (B, H, W) float in [0, 1] (1 at ground-truth keypoints).
+        valid: optional (B, H, W) bool, pixels that take part (others are ignored).
+        pos_weight: weight of the positive term (keypoints are ~1% of the pixels).
+    Returns:
+        scalar: weighted BCE averaged over valid pixels (0 if none).
+    """
+    if logits.ndim == 4:
+        logits = logits[:, 0]
+    if logits.shape != target.shape:
+        raise ModelInputError(f'keypoint_loss: logits {tuple(logits.shape)} vs target '
+                              f'{tuple(target.shape)}')
+    pw = torch.tensor(float(pos_weight), dtype=logits.dtype, device=logits.device)
+    loss = F.binary_cross_entropy_with_logits(logits, target.to(logits.dtype), reduction='none',
+                                              pos_weight=pw)
+    if valid is None:
+        return loss.mean()
+    valid = valid.to(loss.dtype)
+    return (loss * valid).sum() / valid.sum().clamp(min=1.0)
+
+
+def sample_descriptors(desc: torch.Tensor, points: torch.Tensor,
+                       stride: int = KP_STRIDE) -> torch.Tensor:
+    """Bilinearly sample a stride-``stride`` descriptor map at points and re-normalise.
+
+    Args:
+        desc: (B, D, h, w) descriptor map (cell (i, j) centred at input px (8j + 3.5, 8i + 3.5)).
+        points: (B, M, 2) (u, v) px at the input resolution ``(h * stride, w * stride)``; pixel
+            centres at integers.
+    Returns:
+        (B, M, D) unit-norm descriptors.
+    """
+    b, _, h, w = desc.shape
+    # px -> normalised coordinates of the map (align_corners=False: -1 = left edge of cell 0)
+    grid = (points + 0.5) / torch.tensor([w * stride, h * stride], dtype=points.dtype,
+                                         device=points.device) * 2.0 - 1.0
+    out = F.grid_sample(desc, grid[:, None].to(desc.dtype), mode='bilinear',
+                        padding_mode='border', align_corners=False)  # (B, D, 1, M)
+    return F.normalize(out[:, :, 0].transpose(1, 2), p=2, dim=-1, eps=1e-8)
+
+
+def descriptor_loss(desc_a: torch.Tensor, desc_b: torch.Tensor, points_a: torch.Tensor,
+                    points_b: torch.Tensor, valid: torch.Tensor, pos_margin: float = 1.0,
+                    neg_margin: float = 0.2, neg_radius: float = 8.0
+                    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """Contrastive margin loss on cosine similarity (paper eq. 7) with hardest negatives.
+
+    Positive pairs are the ground-truth correspondences ``(points_a[i], points_b[i])``. For each
+    positive, the negative is the hardest (most similar) *other* sampled point of the same pair
+    whose position lies farther than ``neg_radius`` px from the true match, searched in both
+    directions (a_i against all b_j, and b_i against all a_j), as in HardNet.
+
+    Args:
+        desc_a, desc_b: (B, D, h, w) unit-norm descriptor maps of the two views.
+        points_a, points_b: (B, M, 2) corresponding (u, v) px in view a and view b.
+        valid: (B, M) bool, correspondence exists (padding rows are False).
+        pos_margin: m, positives cost ``max(0, m - sim)``.
+        neg_margin: alpha, negatives cost ``max(0, sim - alpha)``.
+        neg_radius: px, exclusion radius around the true match for negatives.
+    Returns:
+        ``(loss, stats)``: scalar loss (mean positive term + mean negative term, 0 if no valid
+        pair) and detached statistics ``pos_sim``, ``neg_sim`` (means).
+    """
+    if points_a.shape != points_b.shape or points_a.shape[:2] != valid.shape:
+        raise ModelInputError(
+            f'descriptor_loss: points_a {tuple(points_a.shape)}, points_b '
+            f'{tuple(points_b.shape)}, valid {tuple(valid.shape)} must agree (B, M, 2)/(B, M)')
+    da = sample_descriptors(desc_a, points_a)
+    db = sample_descriptors(desc_b, points_b)
+    sim = da @ db.transpose(1, 2)  # (B, M, M): sim[b, i, j] = <a_i, b_j>
+    pos = sim.diagonal(dim1=1, dim2=2)  # (B, M)
+    vf = valid.to(sim.dtype)
+    n_valid = vf.sum()
+    if n_valid < 1:
+        zero = sim.sum() * 0.0
+        return zero, {'pos_sim': zero.detach(), 'neg_sim': zero.detach()}
+    # negatives must be valid points farther than neg_radius from the true match in *both* views
+    far_b = torch.cdist(points_b, points_b) > neg_radius  # (B, M, M)
+    far_a = torch.cdist(points_a, points_a) > neg_radius
+    cand = far_a & far_b & valid[:, None, :] & valid[:, :, None]
+    masked = sim.masked_fill(~cand, -2.0)
+    hard_ab = masked.max(dim=2).values  # hardest b_j for each a_i
+    hard_ba = masked.max(dim=1).values  # hardest a_j for each b_i
+    has_ab = cand.any(dim=2) & valid
+    has_ba = cand.any(dim=1) & valid
+    pos_term = (F.relu(pos_margin - pos) * vf).sum() / n_valid
+    neg_ab = F.relu(hard_ab - neg_margin) * has_ab.to(sim.dtype)
+    neg_ba = F.relu(hard_ba - neg_margin) * has_ba.to(sim.dtype)
+    n_neg = (has_ab.sum() + has_ba.sum()).clamp(min=1).to(sim.dtype)
+    neg_term = (neg_ab.sum() + neg_ba.sum()) / n_neg
+    stats = {
+        'pos_sim': ((pos * vf).sum() / n_valid).detach(),
+        'neg_sim': ((hard_ab * has_ab).sum() / has_ab.sum().clamp(min=1)).detach(),
+    }
+    return pos_term + neg_term, stats
+
+
+def segmentation_loss(logits: torch.Tensor, labels: torch.Tensor,
+                      class_weights: torch.Tensor | None = None,
+                      full_resolution: bool = True) -> torch.Tensor:
+    """Multi-class cross-entropy (paper eq. 8).
+
+    Args:
+        logits: (B, C, h, w) class logits at stride ``s = H / h`` (integer).
+        labels: (B, H, W) integer class ids, :data:`IGNORE_LABEL` (255) ignored.
+        class_weights: optional (C,) per-class weights.
+        full_resolution: True: logits upsampled bilinearly to (H, W) (the paper);
+            False: labels sampled at the logit cell centres (pixel ``s*i + s//2``), ~16x
+            cheaper at stride 4 and the resolution the extractor's mask is produced at.
+    Returns:
+        scalar: mean CE over labelled pixels (0 if every pixel is ignored).
+    """
+    if labels.ndim != 3 or logits.ndim != 4 or labels.shape[0] != logits.shape[0]:
+        raise ModelInputError(f'segmentation_loss: logits {tuple(logits.shape)} (B, C, h, w) '
+                              f'vs labels {tuple(labels.shape)} (B, H, W)')
+    labels = labels.long()
+    if logits.shape[-2:] != labels.shape[-2:]:
+        if full_resolution:
+            logits = F.interpolate(logits, size=labels.shape[-2:], mode='bilinear',
+                                   align_corners=False)
+        else:
+            s = labels.shape[-1] // logits.shape[-1]
+            if s < 1 or labels.shape[-1] != s * logits.shape[-1] \
+                    or labels.shape[-2] != s * logits.shape[-2]:
+                raise ModelInputError(f'segmentation_loss: labels {tuple(labels.shape)} are not '
+                                      f'an integer multiple of logits {tuple(logits.shape)}')
+            labels = labels[:, s // 2::s, s // 2::s]
+    if not (labels != IGNORE_LABEL).any():
+        return logits.sum() * 0.0
+    return F.cross_entropy(logits, labels, weight=class_weights, ignore_index=IGNORE_LABEL)
+
+
+class MultiTaskLoss:
+    """L_total = w_kp L_kp + w_desc L_desc + w_seg L_seg (paper eq. 9: alpha, beta, gamma)."""
+
+    def __init__(self, conf: dict[str, Any] | None = None) -> None:
+        self.conf = conf = {**default_loss_conf, **(conf or {})}
+        unknown = set(conf) - set(default_loss_conf)
+        if unknown:
+            raise ModelConfigError(f'unknown loss config keys {sorted(unknown)}; expected a '
+                                   f'subset of {sorted(default_loss_conf)}')
+        for key, value in conf.items():
+            if key == 'seg_full_resolution':
+                if not isinstance(value, bool):
+                    raise ModelConfigError(f'loss.{key} must be true or false, got {value!r}')
+                continue
+            if not isinstance(value, int | float) or isinstance(value, bool) or value < 0:
+                raise ModelConfigError(f'loss.{key} must be a number >= 0, got {value!r}')
+
+    def __call__(self, pred: dict[str, torch.Tensor], batch: dict[str, torch.Tensor]
+                 ) -> tuple[torch.Tensor, dict[str, float]]:
+        """Total loss of a pair batch.
+
+        Args:
+            pred: network output on ``cat([image_a, image_b])`` (batch 2B, see SemFeatNet).
+            batch: ``kp_target`` (2B, H, W) float, ``kp_valid`` (2B, H, W) bool,
+                ``label`` (2B, H, W) int (255 ignored), ``points_a``/``points_b`` (B, M, 2) px,
+                ``corr_valid`` (B, M) bool.
+        Returns:
+            ``(total, logs)``, logs holding floats ``loss``, ``kp``, ``desc``, ``seg``,
+            ``pos_sim``, ``neg_sim``.
+        """
+        c = self.conf
+        l_kp = keypoint_loss(pred['keypoint_logits'], batch['kp_target'], batch['kp_valid'],
+                             c['kp_pos_weight'])
+        desc = pred['descriptors']
+        half = desc.shape[0] // 2
+        l_desc, stats = descriptor_loss(
+            desc[:half], desc[half:], batch['points_a'], batch['points_b'], batch['corr_valid'],
+            c['desc_pos_margin'], c['desc_neg_margin'], c['desc_neg_radius'])
+        l_seg = segmentation_loss(pred['segmentation_logits'], batch['label'],
+                                  full_resolution=c['seg_full_resolution'])
+        total = c['w_kp'] * l_kp + c['w_desc'] * l_desc + c['w_seg'] * l_seg
+        logs = {'loss': float(total.detach()), 'kp': float(l_kp.detach()),
+                'desc': float(l_desc.detach()), 'seg': float(l_seg.detach()),
+                'pos_sim': float(stats['pos_sim']), 'neg_sim': float(stats['neg_sim'])}
+        return total, logs

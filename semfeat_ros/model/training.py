@@ -1,0 +1,580 @@
+"""Training of SemFeatNet (used by ``semfeat-train``; see ``config/train.yaml``).
+
+Recipe (paper: AdamW, lr 2e-4, batch 16, 100 epochs with a 20-epoch warm-up that freezes the
+early encoder layers, then joint fine-tuning) scaled to a ~60 min budget on 2 CPU cores:
+
+* a fixed number of optimisation ``steps`` of ``batch_size`` view *pairs* (2 x batch_size
+  images of ``data.crop_size`` px); ``warmup_fraction`` = 0.2 of the steps keeps the first
+  ``freeze_levels`` encoder blocks frozen (parameters and BatchNorm statistics), as the paper's
+  20 of 100 epochs;
+* AdamW (``lr``, ``weight_decay``), linear lr ramp over ``lr_ramp_steps``, constant during the
+  warm-up, cosine decay to ``min_lr_ratio`` x lr over the joint phase; gradient-norm clipping;
+* every ``val_every`` steps: loss on held-out shards (other seeds) plus seg mIoU, keypoint
+  repeatability and descriptor matching precision (:mod:`semfeat_ros.model.metrics`);
+  checkpoint ``checkpoints/last.pt`` (resumable), CSV logs and PNG plots.
+
+Deterministic for a given seed: sample ``k`` of the run is generated from ``(seed, k)`` only
+(:meth:`PairGenerator.sample`), so a resumed run sees the same data as an uninterrupted one.
+"""
+from __future__ import annotations
+
+import copy
+import csv
+from datetime import UTC, datetime
+import glob
+import json
+import math
+from pathlib import Path
+import shutil
+import time
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Dataset
+from tqdm import tqdm
+
+from semfeat_ros.labels import load_labels
+from semfeat_ros.model.data import (
+    PAIR_KINDS,
+    PairGenerator,
+    PairSample,
+    collate,
+    default_data_conf,
+    merge_conf,
+)
+from semfeat_ros.model.errors import DatasetError, ModelConfigError
+from semfeat_ros.model.extractor import detect_keypoints
+from semfeat_ros.model.losses import MultiTaskLoss, default_loss_conf, sample_descriptors
+from semfeat_ros.model.metrics import (
+    confusion_matrix,
+    matching_precision,
+    mean_iou,
+    repeatability,
+)
+from semfeat_ros.model.semfeatnet import SemFeatNet, count_parameters, normalize_image
+from semfeat_ros.model.weights_io import WEIGHTS_NAME, save_weights
+
+default_train_conf: dict[str, Any] = {
+    'seed': 0,  # seed of every random choice (data, init)
+    'train_shards': ['out/sim_train/*.npz'],  # globs of simulator training shards
+    'val_shards': ['out/sim_val/*.npz'],  # globs of held-out shards (other seeds)
+    'exclude_seeds': [],  # world seeds that must never be trained on (the test seeds)
+    'steps': 4000,  # optimisation steps
+    'batch_size': 8,  # view pairs per step (2x images)
+    'lr': 2.0e-4,  # AdamW base learning rate (paper)
+    'weight_decay': 1.0e-4,  # AdamW weight decay
+    'lr_ramp_steps': 100,  # linear lr ramp at the start
+    'min_lr_ratio': 0.1,  # final lr / base lr of the cosine decay
+    'warmup_fraction': 0.2,  # share of steps with frozen early encoder blocks (paper 20/100)
+    'freeze_levels': 1,  # encoder blocks frozen during the warm-up
+    'grad_clip': 5.0,  # max gradient L2 norm
+    'val_every': 500,  # steps between validations / checkpoints
+    'val_pairs': 24,  # validation pairs (full frames, no photometric augmentation)
+    'val_mix': {'synthetic': 0.5, 'drive': 0.5},  # kinds of validation pairs
+    'val_max_keypoints': 500,  # keypoints per view for repeatability / matching
+    'val_nms_radius': 3,  # px
+    'val_tolerance': 3.0,  # px, repeatability and match-correctness tolerance
+    'num_workers': 1,  # data-loader worker processes (0 = in the main process)
+    'num_threads': 2,  # torch intra-op threads
+    'channels_last': True,  # NHWC memory format for training (measured ~1.5x faster on CPU)
+    'network': {},  # SemFeatNet conf overrides
+    'loss': {},  # MultiTaskLoss conf overrides
+    'data': {},  # PairGenerator conf overrides
+}
+
+
+def load_train_conf(conf: dict[str, Any] | None) -> dict[str, Any]:
+    """Merge a user config with the defaults, validating keys and basic ranges."""
+    conf = dict(conf or {})
+    unknown = set(conf) - set(default_train_conf)
+    if unknown:
+        raise ModelConfigError(f'unknown training config keys {sorted(unknown)}; expected a '
+                               f'subset of {sorted(default_train_conf)}')
+    c = {**copy.deepcopy(default_train_conf), **conf}
+    c['network'] = {**SemFeatNet.default_conf, **(c['network'] or {})}
+    SemFeatNet(c['network'])  # validates
+    c['loss'] = {**default_loss_conf, **(c['loss'] or {})}
+    MultiTaskLoss(c['loss'])  # validates
+    c['data'] = merge_conf(default_data_conf, c['data'], 'data')
+    for key in ('steps', 'batch_size', 'val_every', 'val_pairs', 'num_threads'):
+        if not isinstance(c[key], int) or c[key] < 1:
+            raise ModelConfigError(f'{key} must be an integer >= 1, got {c[key]!r}')
+    if not isinstance(c['num_workers'], int) or c['num_workers'] < 0:
+        raise ModelConfigError(f'num_workers must be an integer >= 0, got {c["num_workers"]!r}')
+    if not 0.0 <= float(c['warmup_fraction']) < 1.0:
+        raise ModelConfigError(f'warmup_fraction must be in [0, 1), got {c["warmup_fraction"]}')
+    if not isinstance(c['freeze_levels'], int) or \
+            not 0 <= c['freeze_levels'] <= len(c['network']['encoder_channels']):
+        raise ModelConfigError(f'freeze_levels must be in 0..number of encoder blocks, got '
+                               f'{c["freeze_levels"]!r}')
+    if not float(c['lr']) > 0:
+        raise ModelConfigError(f'lr must be > 0, got {c["lr"]!r}')
+    return c
+
+
+def expand_shards(patterns: list[str], base: Path | None = None) -> list[Path]:
+    """Sorted shard paths matching the globs (relative globs resolved against ``base``)."""
+    out: set[Path] = set()
+    for pat in patterns:
+        p = Path(pat)
+        if not p.is_absolute() and base is not None:
+            p = base / p
+        out.update(Path(x) for x in glob.glob(str(p)))
+    return sorted(out)
+
+
+def _check_seeds(paths: list[Path], exclude: list[int], what: str) -> list[int]:
+    seeds = []
+    for p in paths:
+        try:
+            with np.load(p, allow_pickle=False) as npz:
+                seeds.append(int(npz['seed']))
+        except (OSError, KeyError, ValueError) as exc:
+            raise DatasetError(f'{what} shard {p}: cannot read its seed ({exc})') from exc
+    bad = sorted({s for s in seeds if s in set(exclude)})
+    if bad:
+        raise DatasetError(f'{what} shards contain excluded (test) seeds {bad}')
+    return seeds
+
+
+class _Samples(Dataset):
+    """Training samples ``start .. stop-1`` of a PairGenerator (index = global sample key)."""
+
+    def __init__(self, gen: PairGenerator, start: int, stop: int) -> None:
+        self.gen, self.start, self.stop = gen, start, stop
+
+    def __len__(self) -> int:
+        return self.stop - self.start
+
+    def __getitem__(self, i: int) -> dict[str, np.ndarray]:
+        return self.gen.sample(self.start + i)
+
+
+def _worker_init(_: int) -> None:
+    cv2.setNumThreads(1)
+
+
+def to_tensors(batch: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
+    """Collated numpy pair batch -> tensors (image normalised, (2B, 3, H, W))."""
+    img = torch.from_numpy(batch['image']).permute(0, 3, 1, 2).contiguous()
+    return {
+        'image': normalize_image(img),
+        'kp_target': torch.from_numpy(batch['kp_target']),
+        'kp_valid': torch.from_numpy(batch['kp_valid']),
+        'label': torch.from_numpy(batch['label'].astype(np.int64)),
+        'points_a': torch.from_numpy(batch['points_a']),
+        'points_b': torch.from_numpy(batch['points_b']),
+        'corr_valid': torch.from_numpy(batch['corr_valid']),
+    }
+
+
+def lr_factor(step: int, conf: dict[str, Any]) -> float:
+    """Multiplier of the base lr at ``step`` (ramp, constant warm-up, cosine decay)."""
+    ramp = max(int(conf['lr_ramp_steps']), 0)
+    if step < ramp:
+        return (step + 1) / ramp
+    warm = int(conf['warmup_fraction'] * conf['steps'])
+    if step < warm:
+        return 1.0
+    span = max(conf['steps'] - warm, 1)
+    t = min(max(step - warm, 0) / span, 1.0)
+    lo = float(conf['min_lr_ratio'])
+    return lo + (1.0 - lo) * 0.5 * (1.0 + math.cos(math.pi * t))
+
+
+def set_frozen(model: SemFeatNet, levels: int, frozen: bool) -> None:
+    """Freeze / unfreeze the first ``levels`` encoder blocks (weights and BN statistics)."""
+    for block in model.encoder.blocks[:levels]:
+        for p in block.parameters():
+            p.requires_grad_(not frozen)
+        block.train(not frozen and model.training)
+
+
+PEAK_THRESHOLDS = (0.01, 0.05, 0.2)
+"""Heatmap thresholds at which validation counts NMS peaks per frame (to tune the extractor)."""
+
+
+class Validator:
+    """Fixed validation pairs (full frames) and their metrics."""
+
+    def __init__(self, gen: PairGenerator, conf: dict[str, Any]) -> None:
+        self.conf = conf
+        self.items: list[tuple[PairSample, dict[str, np.ndarray]]] = []
+        for k in range(conf['val_pairs']):
+            rng = np.random.default_rng([gen.seed, 104729, k])
+            pair = gen.make_pair(rng)
+            self.items.append((pair, gen.build(pair, rng, augment=False)))
+
+    def run(self, model: SemFeatNet, crit: MultiTaskLoss) -> dict[str, float]:
+        """Validation loss and metrics (model left in the mode it had)."""
+        c = self.conf
+        was_training = model.training
+        model.eval()
+        n_cls = model.conf['num_classes']
+        cm = np.zeros((n_cls, n_cls), np.int64)
+        losses: list[dict[str, float]] = []
+        rep_hits, rep_checked, m_correct, m_scored = 0.0, 0, 0, 0
+        peaks: dict[float, list[int]] = {t: [] for t in PEAK_THRESHOLDS}
+        with torch.inference_mode():
+            for pair, sample in self.items:
+                batch = to_tensors(collate([sample]))
+                pred = model(batch['image'])
+                _, logs = crit(pred, batch)
+                losses.append(logs)
+                seg = pred['segmentation_logits']
+                up = torch.nn.functional.interpolate(seg, size=batch['label'].shape[-2:],
+                                                     mode='bilinear', align_corners=False)
+                cm += confusion_matrix(up.argmax(1).numpy(), batch['label'].numpy(), n_cls)
+                kps, descs = [], []
+                for i in range(2):
+                    kp, sc = detect_keypoints(pred['heatmap'][i], None, c['val_nms_radius'], 0.0,
+                                              4)
+                    for t in PEAK_THRESHOLDS:
+                        peaks[t].append(int((sc > t).sum()))
+                    kp = kp[:c['val_max_keypoints']]
+                    d = sample_descriptors(pred['descriptors'][i:i + 1], kp[None])[0]
+                    kps.append(kp.numpy().astype(np.float64))
+                    descs.append(d.numpy())
+                rep, checked = repeatability(kps[0], kps[1], pair.correspond,
+                                             lambda p, pr=pair: pr.correspond(p, reverse=True),
+                                             c['val_tolerance'])
+                if checked:
+                    rep_hits += rep * checked
+                    rep_checked += checked
+                _, correct, scored = matching_precision(kps[0], kps[1], descs[0], descs[1],
+                                                        pair.correspond, c['val_tolerance'])
+                m_correct += correct
+                m_scored += scored
+        model.train(was_training)
+        miou, _ = mean_iou(cm)
+        out = {f'val_{k}': float(np.mean([lg[k] for lg in losses])) for k in losses[0]}
+        out.update(val_miou=miou,
+                   val_repeatability=rep_hits / rep_checked if rep_checked else float('nan'),
+                   val_precision=m_correct / m_scored if m_scored else float('nan'),
+                   val_matches=m_scored / max(len(self.items), 1))
+        for t in PEAK_THRESHOLDS:  # keypoints per full frame at extractor thresholds
+            out[f'val_peaks@{t:g}'] = float(np.median(peaks[t]))
+        return out
+
+
+def _append_csv(path: Path, row: dict[str, Any]) -> None:
+    new = not path.is_file()
+    with open(path, 'a', newline='') as f:
+        w = csv.DictWriter(f, fieldnames=list(row))
+        if new:
+            w.writeheader()
+        w.writerow(row)
+
+
+def _truncate_csv(path: Path, max_step: int) -> None:
+    """Drop rows logged after the resumed checkpoint (step > max_step)."""
+    if not path.is_file():
+        return
+    with open(path, newline='') as f:
+        rows = list(csv.DictReader(f))
+    if not rows:
+        return
+    with open(path, 'w', newline='') as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(r for r in rows if int(r['step']) <= max_step)
+
+
+def plot_logs(out: Path) -> None:
+    """``plots/losses.png`` and ``plots/metrics.png`` from the CSV logs."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    def read(path: Path) -> dict[str, np.ndarray]:
+        if not path.is_file():
+            return {}
+        with open(path, newline='') as f:
+            rows = list(csv.DictReader(f))
+        if not rows:
+            return {}
+        return {k: np.array([float(r[k]) if r[k] not in ('', 'nan') else np.nan for r in rows])
+                for k in rows[0] if k != 'phase'}
+
+    (out / 'plots').mkdir(exist_ok=True)
+    tr, va = read(out / 'train_log.csv'), read(out / 'val_log.csv')
+    if tr:
+        fig, ax = plt.subplots(1, 4, figsize=(16, 3.5))
+        for a, key in zip(ax, ('loss', 'kp', 'desc', 'seg')):
+            y = tr[key]
+            k = max(1, len(y) // 50)
+            smooth = np.convolve(y, np.ones(k) / k, mode='valid')
+            a.plot(tr['step'], y, alpha=0.3, lw=0.5, label='train')
+            a.plot(tr['step'][k - 1:], smooth, lw=1.5, label=f'train (mean of {k})')
+            if va and f'val_{key}' in va:
+                a.plot(va['step'], va[f'val_{key}'], 'o-', label='val')
+            a.set_title(f'L_{key}' if key != 'loss' else 'L_total')
+            a.set_xlabel('step')
+            a.legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(out / 'plots' / 'losses.png', dpi=90)
+        plt.close(fig)
+    if va:
+        fig, ax = plt.subplots(1, 3, figsize=(12, 3.5))
+        for a, key, title in zip(ax, ('val_miou', 'val_repeatability', 'val_precision'),
+                                 ('seg mIoU', 'keypoint repeatability', 'matching precision')):
+            a.plot(va['step'], va[key], 'o-')
+            a.set_title(title)
+            a.set_xlabel('step')
+            a.set_ylim(0, 1)
+            a.grid(alpha=0.3)
+        fig.tight_layout()
+        fig.savefig(out / 'plots' / 'metrics.png', dpi=90)
+        plt.close(fig)
+
+
+def _save_checkpoint(path: Path, model: SemFeatNet, opt: torch.optim.Optimizer, step: int,
+                     conf: dict[str, Any]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix('.tmp')
+    torch.save({'model': model.state_dict(), 'optimizer': opt.state_dict(), 'step': step,
+                'conf_json': json.dumps(conf, sort_keys=True)}, tmp)
+    tmp.replace(path)
+
+
+def main(conf: dict[str, Any], out: Path, *, resume: bool = False, export: Path | None = None,
+         base: Path | None = None, progress: bool = True,
+         stop_after: int | None = None) -> dict[str, Any]:
+    """Train, validate, checkpoint and write ``out/semfeat.safetensors`` (+ JSON).
+
+    Args:
+        conf: training config (keys of :data:`default_train_conf`).
+        out: output directory (logs, plots, checkpoints, final weights).
+        resume: continue from ``out/checkpoints/last.pt`` if it exists.
+        export: also copy the final weights there and write its ``MODEL_CARD.md``.
+        base: directory that relative shard globs are resolved against (default: cwd).
+        progress: show a tqdm progress bar.
+        stop_after: pause after this global step (checkpoint written; continue later with
+            ``resume=True``), e.g. to train in chunks on a shared machine.
+    Returns:
+        summary dict (steps, parameters, final validation metrics, paths); ``stopped`` is
+        True (and no weights are written) when ``stop_after`` paused the run.
+    """
+    c = load_train_conf(conf)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(c['seed'])
+    torch.set_num_threads(c['num_threads'])
+    if c['num_workers'] > 0:
+        # OpenCV's thread pool does not survive fork(): a forked data-loader worker hangs in
+        # its first parallel cv2 call if the parent ever started the pool. Keep cv2 serial.
+        cv2.setNumThreads(1)
+    labels = load_labels()
+    train_paths = expand_shards(c['train_shards'], base)
+    val_paths = expand_shards(c['val_shards'], base)
+    if not train_paths and c['data']['pair_mix'].get('photo', 0) <= 0:
+        raise DatasetError(f'no training shards match {c["train_shards"]}')
+    if not val_paths:
+        raise DatasetError(f'no validation shards match {c["val_shards"]}')
+    if set(train_paths) & set(val_paths):
+        raise DatasetError('training and validation shards overlap')
+    train_seeds = _check_seeds(train_paths, c['exclude_seeds'], 'training')
+    val_seeds = _check_seeds(val_paths, c['exclude_seeds'], 'validation')
+    if set(train_seeds) & set(val_seeds):
+        raise DatasetError(f'training and validation shards share world seeds '
+                           f'{sorted(set(train_seeds) & set(val_seeds))}')
+    gen = PairGenerator(train_paths, c['data'], seed=c['seed'], use_photos=True, labels=labels)
+    val_size = gen.frames[gen.sim_frames[0]].size if gen.sim_frames else None
+    vgen_conf = {**c['data'], 'pair_mix': c['val_mix']}
+    vgen = PairGenerator(val_paths, vgen_conf, seed=c['seed'] + 1, use_photos=False,
+                         labels=labels)
+    vsize = vgen.frames[vgen.sim_frames[0]].size
+    stride = 2 ** len(c['network']['encoder_channels'])
+    vsize = (vsize[0] // stride * stride, vsize[1] // stride * stride)
+    vgen.size = vsize  # validation views are full frames (cropped to a multiple of the stride)
+    validator = Validator(vgen, c)
+
+    model = SemFeatNet(c['network'])
+    if c['channels_last']:
+        model = model.to(memory_format=torch.channels_last)
+    crit = MultiTaskLoss(c['loss'])
+    opt = torch.optim.AdamW(model.parameters(), lr=c['lr'], weight_decay=c['weight_decay'])
+    ckpt = out / 'checkpoints' / 'last.pt'
+    start = 0
+    if resume and ckpt.is_file():
+        state = torch.load(ckpt, map_location='cpu', weights_only=True)
+        model.load_state_dict(state['model'])
+        opt.load_state_dict(state['optimizer'])
+        start = int(state['step'])
+        _truncate_csv(out / 'train_log.csv', start)
+        _truncate_csv(out / 'val_log.csv', start)
+    else:
+        for name in ('train_log.csv', 'val_log.csv'):
+            (out / name).unlink(missing_ok=True)
+    (out / 'config.json').write_text(json.dumps(c, indent=1, sort_keys=True) + '\n')
+
+    warm_steps = int(c['warmup_fraction'] * c['steps'])
+    bs = c['batch_size']
+    loader = DataLoader(_Samples(gen, start * bs, c['steps'] * bs), batch_size=bs, shuffle=False,
+                        num_workers=c['num_workers'], collate_fn=collate,
+                        worker_init_fn=_worker_init if c['num_workers'] else None,
+                        persistent_workers=False)
+    model.train()
+    val_metrics: dict[str, float] = {}
+    bar = tqdm(total=c['steps'], initial=start, disable=not progress, desc='semfeat-train',
+               dynamic_ncols=True)
+    step = start
+    t_last = time.perf_counter()
+    for np_batch in loader:
+        t_data = time.perf_counter() - t_last  # waiting for the data loader
+        frozen = step < warm_steps
+        set_frozen(model, c['freeze_levels'], frozen)
+        for g in opt.param_groups:
+            g['lr'] = c['lr'] * lr_factor(step, c)
+        batch = to_tensors(np_batch)
+        if c['channels_last']:
+            batch['image'] = batch['image'].contiguous(memory_format=torch.channels_last)
+        pred = model(batch['image'])
+        loss, logs = crit(pred, batch)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        grad_norm = torch.nn.utils.clip_grad_norm_(
+            [p for p in model.parameters() if p.grad is not None], c['grad_clip'])
+        opt.step()
+        step += 1
+        now = time.perf_counter()
+        row = {'step': step, 'phase': 'warmup' if frozen else 'joint',
+               'lr': opt.param_groups[0]['lr'], **logs, 'grad_norm': float(grad_norm),
+               'kp_pos': float(np_batch['kp_target'].sum() / len(np_batch['kp_target'])),
+               'sec': now - t_last, 'data_sec': t_data}
+        for k, name in enumerate(PAIR_KINDS):
+            row[f'n_{name}'] = int((np_batch['kind'] == k).sum())
+        t_last = now
+        _append_csv(out / 'train_log.csv', row)
+        bar.update(1)
+        bar.set_postfix(loss=f'{logs["loss"]:.3f}', kp=f'{logs["kp"]:.3f}',
+                        desc=f'{logs["desc"]:.3f}', seg=f'{logs["seg"]:.3f}',
+                        **({'mIoU': f'{val_metrics["val_miou"]:.2f}'} if val_metrics else {}))
+        if step % c['val_every'] == 0 or step == c['steps']:
+            val_metrics = validator.run(model, crit)
+            _append_csv(out / 'val_log.csv', {'step': step, **val_metrics})
+            _save_checkpoint(ckpt, model, opt, step, c)
+            plot_logs(out)
+        if stop_after is not None and step >= stop_after and step < c['steps']:
+            _save_checkpoint(ckpt, model, opt, step, c)
+            bar.close()
+            return {'stopped': True, 'steps': step, 'checkpoint': str(ckpt)}
+    bar.close()
+    if step < c['steps']:
+        raise DatasetError(f'training stopped at step {step} of {c["steps"]}')
+    if not val_metrics:  # resumed a finished run
+        val_metrics = validator.run(model, crit)
+    model.eval()
+    meta = {
+        'class_names': list(labels.names),
+        'input_size': list(val_size or vsize),
+        'training': {
+            'steps': c['steps'], 'batch_size': c['batch_size'], 'seed': c['seed'],
+            'crop_size': c['data']['crop_size'], 'train_shards': len(train_paths),
+            'train_seeds': sorted(set(train_seeds)), 'val_seeds': sorted(set(val_seeds)),
+            'train_frames': len(gen.sim_frames), 'drive_pairs': len(gen.drive_pairs),
+            'photos': [gen.frames[i].name for i in gen.photo_frames],
+            'parameters': count_parameters(model),
+            'finished': datetime.now(UTC).isoformat(timespec='seconds'),
+            'validation': val_metrics,
+        },
+    }
+    weights = save_weights(model, out / f'{WEIGHTS_NAME}.safetensors', meta)
+    summary = {'weights': str(weights), 'steps': step, 'parameters': count_parameters(model),
+               **val_metrics}
+    if export is not None:
+        export = Path(export)
+        export.mkdir(parents=True, exist_ok=True)
+        for suffix in ('.safetensors', '.json'):
+            shutil.copyfile(weights.with_suffix(suffix), export / f'{WEIGHTS_NAME}{suffix}')
+        (export / 'MODEL_CARD.md').write_text(model_card(model, meta, c, out))
+        for name in ('losses.png', 'metrics.png'):
+            src = out / 'plots' / name
+            if src.is_file():
+                shutil.copyfile(src, export / f'training_{name}')
+        summary['exported'] = str(export)
+    (out / 'summary.json').write_text(json.dumps(summary, indent=1, sort_keys=True) + '\n')
+    return summary
+
+
+def model_card(model: SemFeatNet, meta: dict[str, Any], conf: dict[str, Any],
+               out: Path) -> str:
+    """MODEL_CARD.md text for exported weights, filled from the actual run."""
+    t = meta['training']
+    v = t['validation']
+    n = t['parameters']
+
+    def fmt(x: float) -> str:
+        return 'n/a' if x is None or not np.isfinite(x) else f'{x:.3f}'
+
+    net = model.conf
+    tol = conf['val_tolerance']
+    rep = fmt(v.get('val_repeatability'))
+    peaks = ' / '.join(f'{v.get(f"val_peaks@{t:g}", float("nan")):.0f}'
+                       for t in PEAK_THRESHOLDS)
+    return f"""# SemFeatNet weights (semfeat_ros)
+
+Multi-task network of *Semantic Aware Feature Extraction for Enhanced 3D Reconstruction*:
+shared U-Net-style encoder, per task Decoder 1 -> Cross-Task Mixer Module -> Decoder 2 -> head
+(keypoint heatmap, {net['descriptor_dim']}-D descriptors, {net['num_classes']}-class
+segmentation). Architecture and design decisions: `semfeat_ros/model/semfeatnet.py`.
+
+| item | value |
+|---|---|
+| files | `semfeat.safetensors` (tensors), `semfeat.json` (config, class names) |
+| parameters | {n:,} ({n * 4 / 1e6:.2f} MB fp32) |
+| encoder widths | {net['encoder_channels']} (strides 2..{2 ** len(net['encoder_channels'])}) |
+| network input | {meta['input_size'][0]}x{meta['input_size'][1]} px for a full frame |
+| keypoints | 64 cell logits at stride 8 -> depth-to-space -> sigmoid heatmap |
+| descriptors | stride 8, L2-normalised, sampled bilinearly at keypoints |
+| segmentation | stride 4 logits, classes of `config/labels.yaml` |
+| dropped by default | sky, car, pedestrian (extractor `drop_classes`, config/model.yaml) |
+| trained | {t['finished']} |
+
+## Training data
+
+* Rendered fisheye parking-garage frames from the simulator: {t['train_shards']} shard(s),
+  world seeds {t['train_seeds']}, {t['train_frames']} frames, {t['drive_pairs']} drive pairs.
+  Validation on held-out seeds {t['val_seeds']}. No test seed is used (`exclude_seeds`).
+* Pairs: synthetic (rotation +-{conf['data']['rotation_deg']} deg, translation
+  +-{conf['data']['translation_px']} px, scale {conf['data']['scale_range']}, projective warps with
+  correspondences only on planar classes), real viewpoint change between drive frames (depth +
+  poses), and self-supervised homographic pairs of real photographs shipped in installed
+  packages: {', '.join(Path(p).name for p in t['photos']) or 'none'}.
+* Keypoint targets: `semfeat_ros.model.data.keypoint_targets` (image corners + corners of the
+  label / instance / depth edge map, kept only where repeatable across the pair).
+* `real_fisheye_calib` images were **not** used (reserved for evaluation).
+
+## Recipe
+
+AdamW, lr {conf['lr']}, weight decay {conf['weight_decay']}, {t['steps']} steps x
+{t['batch_size']} pairs of {t['crop_size'][0]}x{t['crop_size'][1]} px crops; first
+{conf['warmup_fraction']:.0%} of the steps with the first {conf['freeze_levels']} encoder
+block(s) frozen (the paper's 20 of 100 epochs), then joint fine-tuning with cosine decay. Loss
+weights: kp {conf['loss']['w_kp']}, desc {conf['loss']['w_desc']}, seg {conf['loss']['w_seg']};
+BCE positive weight {conf['loss']['kp_pos_weight']}; descriptor margins m =
+{conf['loss']['desc_pos_margin']}, alpha = {conf['loss']['desc_neg_margin']}.
+
+Rebuild: `semfeat-train --config config/train.yaml --out {out} --export semfeat_ros/weights`.
+
+## Validation (held-out seeds, full frames, final step)
+
+| metric | value |
+|---|---|
+| segmentation mIoU | {fmt(v.get('val_miou'))} |
+| keypoint repeatability ({tol} px, top {conf['val_max_keypoints']}) | {rep} |
+| descriptor matching precision (mutual NN, {tol} px) | {fmt(v.get('val_precision'))} |
+| mean mutual-NN matches scored per pair | {fmt(v.get('val_matches'))} |
+| validation loss | {fmt(v.get('val_loss'))} |
+| NMS peaks per frame with score > 0.01 / 0.05 / 0.2 | {peaks} |
+
+Training curves: `training_losses.png`, `training_metrics.png`.
+
+## Limitations
+
+Trained on rendered images (plus a handful of real photos for the keypoint/descriptor heads);
+performance on real fisheye footage is expected to be lower than on the validation renders.
+Semantic classes that the simulator does not render well are unreliable.
+"""

@@ -1,0 +1,101 @@
+"""``semfeat-train``: train the multi-task network on rendered shards (+ shipped real photos).
+
+    semfeat-train --config config/train.yaml --out out/train [--resume] [--export DIR]
+
+Writes into ``--out``: ``train_log.csv``, ``val_log.csv``, ``plots/losses.png``,
+``plots/metrics.png``, ``checkpoints/last.pt`` (resumable with ``--resume``), ``config.json``,
+``summary.json`` and the final ``semfeat.safetensors`` + ``semfeat.json``. ``--export
+semfeat_ros/weights`` also installs them as the shipped weights with a generated MODEL_CARD.md.
+Bad input gives one line on stderr and exit status 1 (2 for a bad command line).
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+import sys
+from typing import Any
+
+import yaml
+
+PROG = 'semfeat-train'
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (``semfeat-train: error: ...``) and exit status 2."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(2, f'{PROG}: error: {message}\n')
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog=PROG, description=__doc__.split('\n\n')[0],
+                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument('--config', type=Path, required=True,
+                   help='training YAML (see config/train.yaml)')
+    p.add_argument('--out', type=Path, required=True, help='output directory (created)')
+    p.add_argument('--resume', action='store_true',
+                   help='continue from OUT/checkpoints/last.pt if present')
+    p.add_argument('--export', type=Path, default=None,
+                   help='copy the final weights + MODEL_CARD.md here (e.g. semfeat_ros/weights)')
+    p.add_argument('--steps', type=int, default=None, help='override the number of steps')
+    p.add_argument('--stop-after', type=int, default=None,
+                   help='pause after this step (checkpoint written); continue with --resume')
+    p.add_argument('--no-progress', action='store_true', help='no progress bar')
+    return p
+
+
+def read_config(path: Path) -> dict[str, Any]:
+    """Training YAML -> dict. ``network`` may name a YAML file (relative to ``path``) whose
+    ``network`` mapping is used, so config/model.yaml stays the one place of the architecture.
+    Shard globs stay relative to the current directory."""
+    if not path.is_file():
+        raise FileNotFoundError(f'config file not found: {path}')
+    try:
+        conf = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise ValueError(f'{path}: invalid YAML ({exc})') from exc
+    if not isinstance(conf, dict):
+        raise ValueError(f'{path}: expected a mapping at the top level')
+    net = conf.get('network')
+    if isinstance(net, str):
+        npath = (path.parent / net).resolve()
+        if not npath.is_file():
+            raise FileNotFoundError(f'{path}: network file not found: {npath}')
+        try:
+            ndata = yaml.safe_load(npath.read_text())
+        except yaml.YAMLError as exc:
+            raise ValueError(f'{npath}: invalid YAML ({exc})') from exc
+        if not isinstance(ndata, dict) or not isinstance(ndata.get('network'), dict):
+            raise ValueError(f'{npath}: expected a "network" mapping')
+        conf['network'] = ndata['network']
+    return conf
+
+
+def _one_line(exc: BaseException) -> str:
+    return ' '.join(str(exc).split()) or type(exc).__name__
+
+
+def cli(argv: list[str] | None = None) -> int:
+    """Console-script entry point; returns the exit status."""
+    args = build_parser().parse_args(argv)
+    try:
+        conf = read_config(args.config)
+        if args.steps is not None:
+            conf['steps'] = args.steps
+        from semfeat_ros.model.training import main
+        summary = main(conf, args.out, resume=args.resume, export=args.export,
+                       progress=not args.no_progress, stop_after=args.stop_after)
+    except (OSError, ValueError, RuntimeError) as exc:
+        print(f'{PROG}: error: {_one_line(exc)}', file=sys.stderr)
+        return 1
+    if summary.get('stopped'):
+        print(f'{PROG}: paused at step {summary["steps"]}; continue with --resume')
+        return 0
+    print(f'{PROG}: wrote {summary["weights"]} (mIoU {summary.get("val_miou", float("nan")):.3f}'
+          f', repeatability {summary.get("val_repeatability", float("nan")):.3f}, precision '
+          f'{summary.get("val_precision", float("nan")):.3f})')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(cli())

@@ -1,0 +1,266 @@
+"""SemFeatNet, the Cross-Task Mixer Module and the losses."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F  # noqa: N812
+
+from semfeat_ros.model.errors import ModelConfigError, ModelInputError
+from semfeat_ros.model.losses import (
+    MultiTaskLoss,
+    descriptor_loss,
+    keypoint_loss,
+    sample_descriptors,
+    segmentation_loss,
+)
+from semfeat_ros.model.semfeatnet import (
+    CrossTaskMixer,
+    SemFeatNet,
+    count_parameters,
+    fuse_batchnorm,
+    normalize_image,
+)
+
+
+def _reference_ctmm(z: np.ndarray, tasks: np.ndarray, wq: np.ndarray, wk: np.ndarray,
+                    wv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Equations (2)-(5) written literally, one location at a time (float64)."""
+    _, _, h, w = z.shape
+    d = wq.shape[0]
+    K = wk @ tasks.T  # (d, 3): column t = W_k z_t
+    V = wv @ tasks.T  # (d, 3)
+    out = np.zeros((1, d, h, w))
+    alphas = np.zeros((1, 3, h, w))
+    for u in range(h):
+        for v in range(w):
+            q = wq @ z[0, :, u, v]  # (d,)
+            s = q @ K / math.sqrt(d)  # (3,)
+            a = np.exp(s - s.max())
+            a /= a.sum()
+            alphas[0, :, u, v] = a
+            out[0, :, u, v] = sum(a[t] * V[:, t] for t in range(3))
+    return out, alphas
+
+
+def test_ctmm_matches_handwritten_reference() -> None:
+    torch.manual_seed(0)
+    d_enc, d_task, d = 5, 4, 6
+    mixer = CrossTaskMixer(d_enc, d_task, d).double()
+    z = torch.randn(1, d_enc, 3, 4, dtype=torch.float64)
+    tasks = torch.randn(3, d_task, dtype=torch.float64) * 2.0
+    z_tilde, alpha = mixer.mix(z, tasks)
+    wq = mixer.w_q.weight.detach().numpy()[:, :, 0, 0]  # (d, d_enc)
+    wk = mixer.w_k.weight.detach().numpy()  # (d, d_task)
+    wv = mixer.w_v.weight.detach().numpy()
+    ref, ref_alpha = _reference_ctmm(z.numpy(), tasks.numpy(), wq, wk, wv)
+    np.testing.assert_allclose(z_tilde.detach().numpy(), ref, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(alpha.detach().numpy(), ref_alpha, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(alpha.sum(dim=1).detach().numpy(), 1.0, atol=1e-12)
+    # the attention really varies per location (not a constant mixture)
+    assert alpha.detach().std(dim=(2, 3)).max() > 1e-3
+
+
+def test_ctmm_fusion_modes() -> None:
+    torch.manual_seed(1)
+    z = torch.randn(2, 8, 5, 6)
+    tasks = torch.randn(3, 4)
+    add = CrossTaskMixer(8, 4, 6, fusion='add').eval()
+    z_tilde, _ = add.mix(z, tasks)
+    expected = z + F.conv2d(z_tilde, add.fuse.weight)
+    torch.testing.assert_close(add(z, tasks), expected)
+    cat = CrossTaskMixer(8, 4, 6, fusion='concat').eval()
+    out = cat(z, tasks)
+    assert out.shape == z.shape and (out >= 0).all()  # ReLU after the 1x1 conv
+    with pytest.raises(ModelConfigError, match='mixer_fusion'):
+        CrossTaskMixer(8, 4, 6, fusion='sum')
+
+
+@pytest.mark.parametrize('enc', [[8, 16, 24], [8, 16, 24, 32], [8, 8, 16, 16, 24]])
+def test_forward_shapes_and_ranges(enc: list[int]) -> None:
+    torch.manual_seed(0)
+    net = SemFeatNet({'encoder_channels': enc, 'decoder_channels': 16, 'descriptor_dim': 24,
+                      'seg_channels': 8, 'task_dim': 8, 'mixer_dim': 8}).eval()
+    stride = 2 ** len(enc)
+    h, w = 2 * stride, 3 * stride
+    with torch.inference_mode():
+        out = net(torch.randn(2, 3, h, w))
+    assert out['keypoint_logits'].shape == (2, 1, h, w)
+    assert out['heatmap'].shape == (2, h, w)
+    assert ((out['heatmap'] >= 0) & (out['heatmap'] <= 1)).all()
+    assert out['descriptors'].shape == (2, 24, h // 8, w // 8)
+    torch.testing.assert_close(out['descriptors'].norm(dim=1), torch.ones(2, h // 8, w // 8))
+    assert out['segmentation_logits'].shape == (2, 19, h // 4, w // 4)
+    assert out['mixer_attention'].shape == (2, 3, 3, h // 8, w // 8)
+    torch.testing.assert_close(out['mixer_attention'].sum(dim=2),
+                               torch.ones(2, 3, h // 8, w // 8))
+
+
+def test_heatmap_is_depth_to_space_of_cell_logits() -> None:
+    torch.manual_seed(0)
+    net = SemFeatNet({'encoder_channels': [8, 8, 8], 'decoder_channels': 8}).eval()
+    cells = {}
+    net.kp_head.register_forward_hook(lambda m, i, o: cells.setdefault('x', o))
+    with torch.inference_mode():
+        out = net(torch.randn(1, 3, 16, 24))
+    c = cells['x']  # (1, 64, 2, 3)
+    logits = out['keypoint_logits']
+    for i, j, di, dj in [(0, 0, 0, 0), (1, 2, 7, 3), (0, 1, 5, 6)]:
+        assert logits[0, 0, 8 * i + di, 8 * j + dj] == c[0, 8 * di + dj, i, j]
+    torch.testing.assert_close(out['heatmap'], torch.sigmoid(logits[:, 0]))
+
+
+def test_default_model_size_and_bn_fusion() -> None:
+    torch.manual_seed(0)
+    net = SemFeatNet()
+    n = count_parameters(net)
+    assert 200_000 < n < 1_000_000  # a few MB of fp32 weights
+    for m in net.modules():  # non-trivial BN statistics, so folding is really exercised
+        if isinstance(m, torch.nn.BatchNorm2d):
+            m.running_mean.uniform_(-0.5, 0.5)
+            m.running_var.uniform_(0.5, 2.0)
+            m.weight.data.uniform_(0.5, 1.5)
+    net.eval()
+    x = torch.randn(1, 3, 64, 80)
+    with torch.inference_mode():
+        ref = net(x)
+        fused = fuse_batchnorm(net)
+        got = fused(x)
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in fused.modules())
+    for k in ('heatmap', 'descriptors', 'segmentation_logits'):
+        torch.testing.assert_close(got[k], ref[k], atol=1e-4, rtol=1e-4)
+    with pytest.raises(ModelConfigError, match='eval mode'):
+        fuse_batchnorm(SemFeatNet().train())
+
+
+def test_config_and_input_validation() -> None:
+    with pytest.raises(ModelConfigError, match='encoder_channels'):
+        SemFeatNet({'encoder_channels': [8, 16]})
+    with pytest.raises(ModelConfigError, match='unknown network config'):
+        SemFeatNet({'widht': 3})
+    with pytest.raises(ModelConfigError, match='descriptor_dim'):
+        SemFeatNet({'descriptor_dim': 0})
+    net = SemFeatNet().eval()
+    with pytest.raises(ModelInputError, match='multiples of 16'):
+        net(torch.randn(1, 3, 40, 48))
+    with pytest.raises(ModelInputError, match=r'\(B, 3, H, W\)'):
+        net(torch.randn(1, 1, 32, 32))
+
+
+def test_normalize_image() -> None:
+    u8 = torch.full((1, 3, 2, 2), 255, dtype=torch.uint8)
+    torch.testing.assert_close(normalize_image(u8), normalize_image(u8.float() / 255.0))
+    assert normalize_image(u8)[0, 0, 0, 0].item() == pytest.approx((1.0 - 0.45) / 0.25)
+
+
+def test_gradients_reach_every_parameter() -> None:
+    torch.manual_seed(0)
+    net = SemFeatNet({'encoder_channels': [8, 8, 16], 'decoder_channels': 16}).train()
+    out = net(torch.randn(2, 3, 32, 32))
+    loss = (out['keypoint_logits'].mean() + out['descriptors'][:, 0].mean()
+            + out['segmentation_logits'].mean())
+    loss.backward()
+    missing = [n for n, p in net.named_parameters() if p.grad is None or not p.grad.abs().sum()]
+    assert not missing, missing
+
+
+# ---------------------------------------------------------------- losses
+
+
+def test_keypoint_loss_is_weighted_bce_over_valid_pixels() -> None:
+    logits = torch.tensor([[[2.0, -1.0], [0.5, -3.0]]])
+    target = torch.tensor([[[1.0, 0.0], [0.0, 1.0]]])
+    valid = torch.tensor([[[True, True], [False, True]]])
+    p = torch.sigmoid(logits)
+    w = 5.0
+    terms = -(w * target * torch.log(p) + (1 - target) * torch.log(1 - p))
+    expected = terms[valid].mean()
+    got = keypoint_loss(logits[:, None], target, valid, pos_weight=w)
+    torch.testing.assert_close(got, expected)
+    torch.testing.assert_close(keypoint_loss(logits, target, None, 1.0),
+                               F.binary_cross_entropy_with_logits(logits, target))
+    with pytest.raises(ModelInputError):
+        keypoint_loss(logits, target[:, :1])
+
+
+def test_sample_descriptors_cell_centres() -> None:
+    desc = F.normalize(torch.randn(1, 4, 2, 3), dim=1)
+    # cell (i, j) is centred at input px (8j + 3.5, 8i + 3.5)
+    pts = torch.tensor([[[3.5, 3.5], [8 * 2 + 3.5, 8 + 3.5]]])
+    got = sample_descriptors(desc, pts)
+    torch.testing.assert_close(got[0, 0], desc[0, :, 0, 0])
+    torch.testing.assert_close(got[0, 1], desc[0, :, 1, 2])
+
+
+def test_descriptor_loss_hand_computed() -> None:
+    # 1x1-cell maps are constant, so use a 1-row map with distinct cells and points on centres
+    da = torch.zeros(1, 2, 1, 3)
+    db = torch.zeros(1, 2, 1, 3)
+    da[0, :, 0, 0] = torch.tensor([1.0, 0.0])
+    da[0, :, 0, 1] = torch.tensor([0.0, 1.0])
+    da[0, :, 0, 2] = torch.tensor([1.0, 0.0])
+    db[0, :, 0, 0] = torch.tensor([0.6, 0.8])
+    db[0, :, 0, 1] = torch.tensor([0.0, 1.0])
+    db[0, :, 0, 2] = torch.tensor([-1.0, 0.0])
+    pts = torch.tensor([[[3.5, 3.5], [11.5, 3.5], [19.5, 3.5]]])
+    valid = torch.tensor([[True, True, True]])
+    loss, stats = descriptor_loss(da, db, pts, pts, valid, pos_margin=1.0, neg_margin=0.2,
+                                  neg_radius=4.0)
+    # sim[i, j] = <a_i, b_j>
+    sim = np.array([[0.6, 0.0, -1.0], [0.8, 1.0, 0.0], [0.6, 0.0, -1.0]])
+    pos = np.diag(sim)
+    pos_term = np.mean(np.maximum(0, 1.0 - pos))
+    off = sim + np.diag([np.nan] * 3)
+    hard_ab = np.nanmax(off, axis=1)
+    hard_ba = np.nanmax(off, axis=0)
+    neg_term = np.mean(np.maximum(0, np.concatenate([hard_ab, hard_ba]) - 0.2))
+    assert loss.item() == pytest.approx(pos_term + neg_term, abs=1e-6)
+    assert stats['pos_sim'].item() == pytest.approx(pos.mean(), abs=1e-6)
+    # a radius covering every point leaves only the positive term
+    loss_far, _ = descriptor_loss(da, db, pts, pts, valid, 1.0, 0.2, neg_radius=100.0)
+    assert loss_far.item() == pytest.approx(pos_term, abs=1e-6)
+    # invalid rows are ignored entirely; no valid row -> 0
+    loss_none, _ = descriptor_loss(da, db, pts, pts, torch.zeros_like(valid))
+    assert loss_none.item() == 0.0
+
+
+def test_segmentation_loss_ignores_255() -> None:
+    torch.manual_seed(0)
+    logits = torch.randn(1, 19, 2, 2)
+    labels = torch.tensor([[[0, 255, 3, 4], [255, 255, 18, 1],
+                            [2, 2, 255, 255], [5, 6, 7, 255]]])
+    up = F.interpolate(logits, size=(4, 4), mode='bilinear', align_corners=False)
+    keep = labels != 255
+    expected = F.cross_entropy(up.permute(0, 2, 3, 1)[keep], labels[keep])
+    torch.testing.assert_close(segmentation_loss(logits, labels), expected)
+    assert segmentation_loss(logits, torch.full((1, 4, 4), 255)).item() == 0.0
+    # at the logit resolution: labels sampled at the cell centres (stride 2 -> pixel 2i + 1)
+    sub = labels[:, 1::2, 1::2]
+    keep = sub != 255
+    expected = F.cross_entropy(logits.permute(0, 2, 3, 1)[keep], sub[keep])
+    torch.testing.assert_close(segmentation_loss(logits, labels, full_resolution=False),
+                               expected)
+    with pytest.raises(ModelInputError, match='integer multiple'):
+        segmentation_loss(logits, labels[:, :3, :4], full_resolution=False)
+
+
+def test_multitask_loss_weights() -> None:
+    torch.manual_seed(0)
+    net = SemFeatNet({'encoder_channels': [8, 8, 16], 'decoder_channels': 16}).train()
+    pred = net(torch.randn(4, 3, 32, 32))
+    batch = {
+        'kp_target': (torch.rand(4, 32, 32) > 0.95).float(),
+        'kp_valid': torch.ones(4, 32, 32, dtype=torch.bool),
+        'label': torch.randint(0, 19, (4, 32, 32)),
+        'points_a': torch.rand(2, 10, 2) * 31, 'points_b': torch.rand(2, 10, 2) * 31,
+        'corr_valid': torch.ones(2, 10, dtype=torch.bool),
+    }
+    total, logs = MultiTaskLoss({'w_kp': 2.0, 'w_desc': 0.5, 'w_seg': 3.0})(pred, batch)
+    assert total.item() == pytest.approx(2.0 * logs['kp'] + 0.5 * logs['desc'] + 3.0 * logs['seg'],
+                                         rel=1e-5)
+    with pytest.raises(ModelConfigError, match='unknown loss'):
+        MultiTaskLoss({'w_foo': 1.0})
+    with pytest.raises(ModelConfigError, match='w_kp'):
+        MultiTaskLoss({'w_kp': -1.0})

@@ -1,0 +1,196 @@
+"""Training loop (smoke test: the loss goes down), resume, CLI, schedule, metrics, configs."""
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+from conftest import REPO
+import numpy as np
+import pytest
+from test_model_data import make_shard
+import torch
+import yaml
+
+from semfeat_ros.model import load_model_yaml
+from semfeat_ros.model.errors import DatasetError, ModelConfigError
+from semfeat_ros.model.extractor import FeatureExtractor
+from semfeat_ros.model.metrics import (
+    confusion_matrix,
+    matching_precision,
+    mean_iou,
+    mutual_nn,
+    repeatability,
+)
+from semfeat_ros.model.semfeatnet import SemFeatNet
+from semfeat_ros.model.training import load_train_conf, lr_factor, main, set_frozen
+from semfeat_ros.model.weights_io import load_weights, state_dict_allclose
+from semfeat_ros.tools.train import cli, read_config
+
+TINY = {
+    'steps': 20, 'batch_size': 2, 'val_every': 10, 'val_pairs': 2, 'num_workers': 0,
+    'lr': 3e-3, 'lr_ramp_steps': 2,
+    'network': {'encoder_channels': [8, 16, 16, 24], 'decoder_channels': 16,
+                'descriptor_dim': 16, 'seg_channels': 8, 'task_dim': 8, 'mixer_dim': 8},
+    'data': {'frame_long_side': 160, 'crop_size': [96, 96], 'num_points': 64,
+             'photo_adaptation': 2},
+}
+
+
+@pytest.fixture(scope='module')
+def shards(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    d = tmp_path_factory.mktemp('train_shards')
+    for s in (1, 2):
+        make_shard(d / 'train' / f's{s}.npz', n=4, seed=s)
+    make_shard(d / 'val' / 's3.npz', n=3, seed=3)
+    return d
+
+
+def _conf(shards: Path, **over: object) -> dict:
+    return {**TINY, 'train_shards': [str(shards / 'train' / '*.npz')],
+            'val_shards': [str(shards / 'val' / '*.npz')], **over}
+
+
+def _losses(out: Path) -> np.ndarray:
+    with open(out / 'train_log.csv', newline='') as f:
+        return np.array([float(r['loss']) for r in csv.DictReader(f)])
+
+
+def test_training_smoke_loss_goes_down_and_outputs_work(shards: Path, tmp_path: Path) -> None:
+    out = tmp_path / 'run'
+    summary = main(_conf(shards), out, export=tmp_path / 'export', progress=False)
+    loss = _losses(out)
+    assert len(loss) == 20
+    assert loss[-5:].mean() < 0.9 * loss[:5].mean(), loss
+    for name in ('semfeat.safetensors', 'semfeat.json', 'val_log.csv', 'config.json',
+                 'summary.json', 'plots/losses.png', 'plots/metrics.png',
+                 'checkpoints/last.pt'):
+        assert (out / name).is_file(), name
+    for name in ('semfeat.safetensors', 'semfeat.json', 'MODEL_CARD.md', 'training_losses.png'):
+        assert (tmp_path / 'export' / name).is_file(), name
+    card = (tmp_path / 'export' / 'MODEL_CARD.md').read_text()
+    assert 'world seeds [1, 2]' in card and 'real_fisheye_calib' in card
+    assert 0.0 <= summary['val_repeatability'] <= 1.0 and np.isfinite(summary['val_miou'])
+    model, config = load_weights(out)
+    assert config['input_size'] == [160, 128] and config['training']['train_seeds'] == [1, 2]
+    feats = FeatureExtractor(out / 'semfeat.safetensors',
+                             {'detection_threshold': 0.0}).extract(
+        np.random.default_rng(0).integers(0, 255, (256, 320, 3), dtype=np.uint8))
+    assert len(feats) > 0 and feats.descriptors.shape[1] == 16
+
+
+def test_resume_reproduces_an_uninterrupted_run(shards: Path, tmp_path: Path) -> None:
+    conf = _conf(shards, steps=6, val_every=6)
+    main(conf, tmp_path / 'full', progress=False)
+    paused = main(conf, tmp_path / 'chunked', progress=False, stop_after=3)
+    assert paused['stopped'] and paused['steps'] == 3
+    assert not (tmp_path / 'chunked' / 'semfeat.safetensors').exists()
+    main(conf, tmp_path / 'chunked', progress=False, resume=True)
+    a, _ = load_weights(tmp_path / 'full')
+    b, _ = load_weights(tmp_path / 'chunked')
+    for (ka, va), (kb, vb) in zip(a.state_dict().items(), b.state_dict().items()):
+        assert ka == kb
+        torch.testing.assert_close(va, vb, atol=1e-5, rtol=1e-4)
+    np.testing.assert_allclose(_losses(tmp_path / 'full'), _losses(tmp_path / 'chunked'),
+                               rtol=1e-4)
+
+
+def test_cli(shards: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    cfg = tmp_path / 'train.yaml'
+    cfg.write_text(yaml.safe_dump(_conf(shards, steps=2, val_every=2)))
+    assert cli(['--config', str(cfg), '--out', str(tmp_path / 'o'), '--no-progress']) == 0
+    assert 'wrote' in capsys.readouterr().out
+    assert cli(['--config', str(tmp_path / 'nope.yaml'), '--out', str(tmp_path / 'o')]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith('semfeat-train: error: config file not found') and err.count('\n') == 1
+    cfg.write_text(yaml.safe_dump({**_conf(shards), 'train_shards': [str(tmp_path / 'x/*.npz')],
+                                   'data': {**TINY['data'], 'pair_mix': {'synthetic': 1.0}}}))
+    assert cli(['--config', str(cfg), '--out', str(tmp_path / 'o')]) == 1
+    assert 'no training shards' in capsys.readouterr().err
+    cfg.write_text(yaml.safe_dump({**_conf(shards), 'bogus': 1}))
+    assert cli(['--config', str(cfg), '--out', str(tmp_path / 'o')]) == 1
+    assert 'unknown training config keys' in capsys.readouterr().err
+    cfg.write_text(': not yaml [')
+    assert cli(['--config', str(cfg), '--out', str(tmp_path / 'o')]) == 1
+    with pytest.raises(SystemExit) as exc:
+        cli(['--out', str(tmp_path)])
+    assert exc.value.code == 2
+
+
+def test_test_seeds_and_overlap_are_refused(shards: Path, tmp_path: Path) -> None:
+    with pytest.raises(DatasetError, match=r'excluded \(test\) seeds \[2\]'):
+        main(_conf(shards, exclude_seeds=[2]), tmp_path / 'o', progress=False)
+    with pytest.raises(DatasetError, match='overlap'):
+        main(_conf(shards, val_shards=[str(shards / 'train' / 's1.npz')]), tmp_path / 'o',
+             progress=False)
+
+
+def test_lr_schedule_and_freezing() -> None:
+    c = load_train_conf({'steps': 100, 'lr_ramp_steps': 10, 'warmup_fraction': 0.2,
+                         'min_lr_ratio': 0.1})
+    assert lr_factor(0, c) == pytest.approx(0.1)
+    assert lr_factor(9, c) == pytest.approx(1.0)
+    assert lr_factor(15, c) == 1.0 and lr_factor(20, c) == pytest.approx(1.0)
+    assert lr_factor(60, c) == pytest.approx(0.55)
+    assert lr_factor(100, c) == pytest.approx(0.1)
+    net = SemFeatNet({'encoder_channels': [8, 8, 16], 'decoder_channels': 8}).train()
+    set_frozen(net, 1, True)
+    bn = net.encoder.blocks[0][0][1]
+    before = bn.running_mean.clone()
+    out = net(torch.randn(2, 3, 32, 32) * 3 + 1)
+    out['heatmap'].mean().backward()
+    assert all(p.grad is None for p in net.encoder.blocks[0].parameters())
+    assert any(p.grad is not None for p in net.encoder.blocks[1].parameters())
+    torch.testing.assert_close(bn.running_mean, before)  # frozen BN statistics
+    set_frozen(net, 1, False)
+    assert all(p.requires_grad for p in net.parameters()) and bn.training
+
+
+def test_metrics_hand_examples() -> None:
+    gt = np.array([[0, 0, 1, 255]])
+    pred = np.array([[0, 1, 1, 0]])
+    cm = confusion_matrix(pred, gt, 3)
+    assert cm.sum() == 3
+    miou, iou = mean_iou(cm)
+    assert iou[0] == pytest.approx(0.5) and iou[1] == pytest.approx(0.5) and np.isnan(iou[2])
+    assert miou == pytest.approx(0.5)
+
+    def shift(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return p + [10.0, 0.0], p[:, 0] < 50
+
+    def unshift(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return p - [10.0, 0.0], p[:, 0] < 60
+
+    kp_a = np.array([[0.0, 0.0], [20.0, 5.0], [100.0, 0.0]])  # last one has no GT in b
+    kp_b = np.array([[11.0, 0.0], [40.0, 40.0]])
+    rep, checked = repeatability(kp_a, kp_b, shift, unshift, tol=2.0)
+    # a->b: 2 checked, 1 repeated; b->a: 2 checked ((11,0)->(1,0) repeated, (40,40) not)
+    assert checked == 4 and rep == pytest.approx(0.5)
+    da = np.eye(3)[[0, 1, 2]].astype(np.float32)
+    db = np.eye(3)[[0, 2]].astype(np.float32)
+    assert mutual_nn(da, db).tolist() == [[0, 0], [2, 1]]
+    prec, correct, scored = matching_precision(kp_a, kp_b, da, db, shift, tol=2.0)
+    assert (correct, scored) == (1, 1) and prec == 1.0  # (100,0) has no GT -> not scored
+
+
+def test_shipped_config_files_match_the_code() -> None:
+    cfg = load_model_yaml()
+    assert cfg['network'] == SemFeatNet.default_conf  # the architecture of the shipped weights
+    raw = yaml.safe_load((REPO / 'config' / 'model.yaml').read_text())
+    assert set(raw['extractor']) == set(FeatureExtractor.default_conf)  # every key documented
+    assert set(raw['network']) == set(SemFeatNet.default_conf)
+    conf = load_train_conf(read_config(REPO / 'config' / 'train.yaml'))
+    assert conf['network'] == SemFeatNet.default_conf
+    assert conf['lr'] == 2e-4 and conf['warmup_fraction'] == 0.2
+    assert conf['data']['rotation_deg'] == 30.0 and conf['data']['scale_range'] == [0.8, 1.2]
+    with pytest.raises(ModelConfigError, match='unknown training config'):
+        load_train_conf({'stepz': 3})
+    with pytest.raises(ModelConfigError, match='freeze_levels'):
+        load_train_conf({'freeze_levels': 9})
+
+
+def test_state_dict_allclose() -> None:
+    a = SemFeatNet({'encoder_channels': [8, 8, 8]})
+    b = SemFeatNet({'encoder_channels': [8, 8, 8]})
+    assert not state_dict_allclose(a, b)
+    b.load_state_dict(a.state_dict())
+    assert state_dict_allclose(a, b)
