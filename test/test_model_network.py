@@ -264,3 +264,23 @@ def test_multitask_loss_weights() -> None:
         MultiTaskLoss({'w_foo': 1.0})
     with pytest.raises(ModelConfigError, match='w_kp'):
         MultiTaskLoss({'w_kp': -1.0})
+
+
+def test_descriptor_loss_all_negatives_penalises_collapse() -> None:
+    """With 'all' negatives a collapsed descriptor map costs (1 - alpha) on the negatives, and
+    spread-out descriptors cost less: the dense term pushes every pair apart."""
+    from semfeat_ros.model.losses import descriptor_loss
+
+    torch.manual_seed(0)
+    pts = torch.rand(1, 32, 2) * 120 + 4
+    valid = torch.ones(1, 32, dtype=torch.bool)
+    collapsed = F.normalize(torch.ones(1, 8, 16, 16), dim=1)
+    loss_c, st = descriptor_loss(collapsed, collapsed, pts, pts, valid, 1.0, 0.2, 24.0, 'all')
+    assert abs(float(loss_c) - 0.8) < 1e-5 and abs(float(st['pos_sim']) - 1.0) < 1e-5
+    spread = F.normalize(torch.randn(1, 8, 16, 16), dim=1)
+    loss_s, _ = descriptor_loss(spread, spread, pts, pts, valid, 1.0, 0.2, 24.0, 'all')
+    loss_h, _ = descriptor_loss(spread, spread, pts, pts, valid, 1.0, 0.2, 24.0, 'hardest')
+    assert float(loss_s) < float(loss_c)
+    assert float(loss_s) < float(loss_h)  # the mean over all negatives is below the hardest
+    with pytest.raises(ModelConfigError):
+        descriptor_loss(spread, spread, pts, pts, valid, 1.0, 0.2, 24.0, 'some')

@@ -25,6 +25,9 @@ default_loss_conf: dict[str, Any] = {
     'desc_pos_margin': 1.0,  # m: positives are penalised by max(0, m - cos)
     'desc_neg_margin': 0.2,  # alpha (paper): negatives are penalised by max(0, cos - alpha)
     'desc_neg_radius': 8.0,  # px (input resolution): candidates closer than this are not negatives
+    'desc_negatives': 'hardest',  # 'hardest' (HardNet-style mining) or 'all' (every candidate pair
+    #                               beyond the radius, averaged, as in SuperPoint's version of the
+    #                               same margin loss: dense gradients that resist collapse)
     'seg_full_resolution': False,  # CE at the label resolution (paper) or at the logit stride
 }
 
@@ -77,7 +80,7 @@ def sample_descriptors(desc: torch.Tensor, points: torch.Tensor,
 
 def descriptor_loss(desc_a: torch.Tensor, desc_b: torch.Tensor, points_a: torch.Tensor,
                     points_b: torch.Tensor, valid: torch.Tensor, pos_margin: float = 1.0,
-                    neg_margin: float = 0.2, neg_radius: float = 8.0
+                    neg_margin: float = 0.2, neg_radius: float = 8.0, negatives: str = 'hardest'
                     ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Contrastive margin loss on cosine similarity (paper eq. 7) with hardest negatives.
 
@@ -93,6 +96,8 @@ def descriptor_loss(desc_a: torch.Tensor, desc_b: torch.Tensor, points_a: torch.
         pos_margin: m, positives cost ``max(0, m - sim)``.
         neg_margin: alpha, negatives cost ``max(0, sim - alpha)``.
         neg_radius: px, exclusion radius around the true match for negatives.
+        negatives: 'hardest' (one mined negative per point and direction) or 'all' (the mean
+            of ``max(0, sim - alpha)`` over every candidate pair beyond ``neg_radius``).
     Returns:
         ``(loss, stats)``: scalar loss (mean positive term + mean negative term, 0 if no valid
         pair) and detached statistics ``pos_sim``, ``neg_sim`` (means).
@@ -120,10 +125,16 @@ def descriptor_loss(desc_a: torch.Tensor, desc_b: torch.Tensor, points_a: torch.
     has_ab = cand.any(dim=2) & valid
     has_ba = cand.any(dim=1) & valid
     pos_term = (F.relu(pos_margin - pos) * vf).sum() / n_valid
-    neg_ab = F.relu(hard_ab - neg_margin) * has_ab.to(sim.dtype)
-    neg_ba = F.relu(hard_ba - neg_margin) * has_ba.to(sim.dtype)
-    n_neg = (has_ab.sum() + has_ba.sum()).clamp(min=1).to(sim.dtype)
-    neg_term = (neg_ab.sum() + neg_ba.sum()) / n_neg
+    if negatives == 'all':
+        cf = cand.to(sim.dtype)
+        neg_term = (F.relu(sim - neg_margin) * cf).sum() / cf.sum().clamp(min=1)
+    elif negatives == 'hardest':
+        neg_ab = F.relu(hard_ab - neg_margin) * has_ab.to(sim.dtype)
+        neg_ba = F.relu(hard_ba - neg_margin) * has_ba.to(sim.dtype)
+        n_neg = (has_ab.sum() + has_ba.sum()).clamp(min=1).to(sim.dtype)
+        neg_term = (neg_ab.sum() + neg_ba.sum()) / n_neg
+    else:
+        raise ModelConfigError(f"desc_negatives must be 'hardest' or 'all', got {negatives!r}")
     stats = {
         'pos_sim': ((pos * vf).sum() / n_valid).detach(),
         'neg_sim': ((hard_ab * has_ab).sum() / has_ab.sum().clamp(min=1)).detach(),
@@ -180,6 +191,10 @@ class MultiTaskLoss:
                 if not isinstance(value, bool):
                     raise ModelConfigError(f'loss.{key} must be true or false, got {value!r}')
                 continue
+            if key == 'desc_negatives':
+                if value not in ('hardest', 'all'):
+                    raise ModelConfigError(f"loss.{key} must be 'hardest' or 'all', got {value!r}")
+                continue
             if not isinstance(value, int | float) or isinstance(value, bool) or value < 0:
                 raise ModelConfigError(f'loss.{key} must be a number >= 0, got {value!r}')
 
@@ -203,7 +218,8 @@ class MultiTaskLoss:
         half = desc.shape[0] // 2
         l_desc, stats = descriptor_loss(
             desc[:half], desc[half:], batch['points_a'], batch['points_b'], batch['corr_valid'],
-            c['desc_pos_margin'], c['desc_neg_margin'], c['desc_neg_radius'])
+            c['desc_pos_margin'], c['desc_neg_margin'], c['desc_neg_radius'],
+            c['desc_negatives'])
         l_seg = segmentation_loss(pred['segmentation_logits'], batch['label'],
                                   full_resolution=c['seg_full_resolution'])
         total = c['w_kp'] * l_kp + c['w_desc'] * l_desc + c['w_seg'] * l_seg
