@@ -77,6 +77,16 @@ class FeatureNodeConfig:
                                         read_only=True)
 
 
+def frontend_config(c: FeatureNodeConfig, weights: str | None = None) -> FrontendConfig:
+    """The front end's settings for the node parameters (``weights`` overrides the parameter);
+    the offline tools build theirs with the same function."""
+    return FrontendConfig(
+        weights=weights or c.weights or None, num_threads=c.num_threads,
+        max_keypoints=c.max_keypoints, score_threshold=c.score_threshold,
+        nms_radius=c.nms_radius, border=c.border, drop_classes=tuple(c.drop_classes),
+        mask_resolution=c.mask_resolution, resize_max=c.resize_max)
+
+
 class FeatureNode(Node):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('feature_node', **kwargs)
@@ -85,11 +95,7 @@ class FeatureNode(Node):
         c = self.conf
         self.health = NodeHealth(self)
         self.labels = load_labels()
-        self.frontend = SemanticFrontend(FrontendConfig(
-            weights=c.weights or None, num_threads=c.num_threads, max_keypoints=c.max_keypoints,
-            score_threshold=c.score_threshold, nms_radius=c.nms_radius, border=c.border,
-            drop_classes=tuple(c.drop_classes), mask_resolution=c.mask_resolution,
-            resize_max=c.resize_max))
+        self.frontend = SemanticFrontend(frontend_config(c))
         self._camera: CameraModel | None = None
         self._camera_lock = threading.Lock()
         self._worker: LatestWorker = LatestWorker(self._process, self.health.on_error,

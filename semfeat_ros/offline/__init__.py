@@ -1,0 +1,1 @@
+"""Offline batch tools: bag reading, front ends, mapping runs, metrics and figures."""

@@ -1,0 +1,230 @@
+"""Trajectory and map metrics against the ground truth of a recording.
+
+All positions are in metres. The estimate is compared at its own stamps with the ground-truth
+pose at the same stamp (interpolated between ground-truth samples at most ``max_gap_s`` apart;
+estimates outside the ground truth's time span are left out).
+
+* ATE: RMSE of positions after a Sim(3) Umeyama alignment (scale free: always reported) and
+  after an SE(3) alignment (only when the estimate claims metric scale).
+* Ramp altitude: on the samples where the ground-truth pitch exceeds ``ramp_pitch_rad``
+  (sloped ramp sections), RMSE and maximum of |aligned estimated z - ground-truth z|.
+* Floors: the ground-truth levels are the plateaus of the ground-truth altitude profile
+  (:func:`semfeat_ros.mapping.detect_floors`, the mapper's own rule, on the ground-truth
+  trajectory). The ground-truth floor of a map point (aligned into the ground-truth frame) is
+  the level whose storey contains it: the highest level whose altitude is at most
+  ``floor_tolerance_m`` above the point (a ceiling point of a covered level hangs below the deck
+  slab and belongs to the level beneath it; points below the lowest level belong to it). The
+  estimated floor indices are translated into ground-truth levels through the keyframes: each
+  estimated level maps to the ground-truth level most of its plateau keyframes stand on.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from semfeat_ros.mapping import (
+    AlignmentError,
+    FloorLevels,
+    SemanticCloud,
+    Similarity,
+    align_umeyama,
+    detect_floors,
+)
+from semfeat_ros.mapping.session import interpolate_pose
+from semfeat_ros.offline.errors import EvaluationError
+
+#: Ground-truth pitch (rad) above which a sample lies on a ramp (the sim's ramps: 0.06..0.12).
+RAMP_PITCH_RAD = 0.02
+#: A point at most this far below a level's surface still belongs to that level (m).
+FLOOR_TOLERANCE_M = 0.2
+
+
+def associate(est_stamps: np.ndarray, gt_stamps: np.ndarray, gt_poses: np.ndarray,
+              max_gap_s: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
+    """Ground-truth poses at ``est_stamps`` (ns): ``(indices (M,) into est_stamps, poses
+    (M, 4, 4))``.
+
+    Exact stamps are used as they are; others are interpolated between the bracketing
+    ground-truth samples when those are at most ``max_gap_s`` apart.
+    """
+    est = np.asarray(est_stamps, dtype=np.int64).ravel()
+    gts = np.asarray(gt_stamps, dtype=np.int64).ravel()
+    gtp = np.asarray(gt_poses, dtype=np.float64).reshape(-1, 4, 4)
+    idx, out = [], []
+    if len(gts) == 0:
+        return np.zeros(0, np.int64), np.zeros((0, 4, 4))
+    pos = np.searchsorted(gts, est, side='left')
+    gap = int(max_gap_s * 1e9)
+    for i, (s, j) in enumerate(zip(est.tolist(), pos.tolist())):
+        if j < len(gts) and gts[j] == s:
+            idx.append(i)
+            out.append(gtp[j])
+        elif 0 < j < len(gts) and gts[j] - gts[j - 1] <= gap:
+            a = (s - gts[j - 1]) / (gts[j] - gts[j - 1])
+            idx.append(i)
+            out.append(interpolate_pose(gtp[j - 1], gtp[j], float(a)))
+    return np.asarray(idx, dtype=np.int64), np.asarray(out).reshape(-1, 4, 4)
+
+
+def pitch_of(poses: np.ndarray) -> np.ndarray:
+    """Pitch (rad, nose up positive) of base poses (N, 4, 4): elevation of the x axis."""
+    P = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+    return np.arcsin(np.clip(P[:, 2, 0], -1.0, 1.0))
+
+
+def travelled(positions: np.ndarray) -> np.ndarray:
+    """Cumulative travelled distance (m) along positions (N, 3)."""
+    P = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    if len(P) == 0:
+        return np.zeros(0)
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
+
+
+def _rmse(err: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(err)))) if len(err) else float('nan')
+
+
+@dataclass(frozen=True)
+class TrajectoryEvaluation:
+    """Associated samples and the alignments (see :func:`evaluate_trajectory`)."""
+
+    est_index: np.ndarray  # (M,) index of each associated sample in the estimate
+    est: np.ndarray  # (M, 4, 4) estimated poses
+    gt: np.ndarray  # (M, 4, 4) ground-truth poses
+    sim3: Similarity
+    se3: Similarity | None
+    ramp: np.ndarray  # (M,) bool: sample on a ramp (ground-truth pitch)
+    metrics: dict[str, float | int | None]
+
+
+def _tag(key: str, alignment: str) -> str:
+    """``'ramp_altitude_max_m'`` -> ``'ramp_altitude_max_sim3_m'``."""
+    return f'{key[:-2]}_{alignment}_m'
+
+
+def _altitude(aligned: np.ndarray, gt: np.ndarray, ramp: np.ndarray) -> dict[str, float | None]:
+    dz = aligned[:, 2] - gt[:, 2]
+    out: dict[str, float | None] = {'altitude_rmse_m': _rmse(dz)}
+    if ramp.any():
+        out['ramp_altitude_rmse_m'] = _rmse(dz[ramp])
+        out['ramp_altitude_max_m'] = float(np.abs(dz[ramp]).max())
+    else:
+        out['ramp_altitude_rmse_m'] = out['ramp_altitude_max_m'] = None
+    return out
+
+
+def evaluate_trajectory(est_stamps: np.ndarray, est_poses: np.ndarray, gt_stamps: np.ndarray,
+                        gt_poses: np.ndarray, *, metric: bool,
+                        ramp_pitch_rad: float = RAMP_PITCH_RAD) -> TrajectoryEvaluation:
+    """ATE (Sim(3), and SE(3) when ``metric``), scale and ramp altitude errors (m).
+
+    Raises:
+        EvaluationError: fewer than 3 associated samples, or no motion to align.
+    """
+    idx, gt = associate(est_stamps, gt_stamps, gt_poses)
+    est = np.asarray(est_poses, dtype=np.float64).reshape(-1, 4, 4)[idx]
+    if len(idx) < 3:
+        raise EvaluationError(
+            f'only {len(idx)} estimated poses fall within the ground truth (need >= 3)')
+    try:
+        sim3 = align_umeyama(est[:, :3, 3], gt[:, :3, 3], with_scale=True)
+        se3 = align_umeyama(est[:, :3, 3], gt[:, :3, 3], with_scale=False) if metric else None
+    except AlignmentError as exc:
+        raise EvaluationError(f'cannot align the trajectory: {exc}') from exc
+    ramp = np.abs(pitch_of(gt)) > ramp_pitch_rad
+    a3 = sim3.apply(est[:, :3, 3])
+    m: dict[str, float | int | None] = {
+        'n_poses': int(len(idx)),
+        'n_ramp_poses': int(ramp.sum()),
+        'gt_length_m': float(travelled(gt[:, :3, 3])[-1]),
+        'ate_sim3_rmse_m': _rmse(np.linalg.norm(a3 - gt[:, :3, 3], axis=1)),
+        'scale_sim3': float(sim3.s),
+    }
+    for k, v in _altitude(a3, gt[:, :3, 3], ramp).items():
+        m[_tag(k, 'sim3')] = v
+    if se3 is not None:
+        a6 = se3.apply(est[:, :3, 3])
+        m['ate_se3_rmse_m'] = _rmse(np.linalg.norm(a6 - gt[:, :3, 3], axis=1))
+        for k, v in _altitude(a6, gt[:, :3, 3], ramp).items():
+            m[_tag(k, 'se3')] = v
+    else:
+        m['ate_se3_rmse_m'] = None
+        for k in ('altitude_rmse_m', 'ramp_altitude_rmse_m', 'ramp_altitude_max_m'):
+            m[_tag(k, 'se3')] = None
+    return TrajectoryEvaluation(idx, est, gt, sim3, se3, ramp, m)
+
+
+def gt_levels(gt_poses: np.ndarray, floor_conf: dict | None = None) -> FloorLevels:
+    """Levels of the ground-truth trajectory (the mapper's plateau rule and parameters)."""
+    c = floor_conf or {}
+    P = np.asarray(gt_poses, dtype=np.float64).reshape(-1, 4, 4)[:, :3, 3]
+    return detect_floors(P, max_slope=c.get('floor_max_slope', 0.05),
+                         slope_window_m=c.get('floor_slope_window_m', 4.0),
+                         min_plateau_m=c.get('floor_min_plateau_m', 6.0),
+                         merge_m=c.get('floor_merge_m', 1.2))
+
+
+def storey_of(z: np.ndarray, levels: np.ndarray,
+              tolerance_m: float = FLOOR_TOLERANCE_M) -> np.ndarray:
+    """Ground-truth floor (index into ascending ``levels``) of altitudes ``z`` (m): the highest
+    level at most ``tolerance_m`` above the point, level 0 for points below all levels."""
+    z = np.asarray(z, dtype=np.float64)
+    lv = np.sort(np.asarray(levels, dtype=np.float64))
+    if len(lv) == 0:
+        return np.zeros(z.shape, np.int64)
+    return np.maximum(np.searchsorted(lv, z + tolerance_m, side='right') - 1, 0)
+
+
+def floor_accuracy(cloud: SemanticCloud, sim3: Similarity, est_levels: FloorLevels,
+                   kf_positions: np.ndarray, gt_level_altitudes: np.ndarray,
+                   tolerance_m: float = FLOOR_TOLERANCE_M) -> dict[str, object]:
+    """Fraction of map points whose floor matches the ground truth (see the module doc).
+
+    ``kf_positions`` (K, 3) are the estimated keyframe positions the ``est_levels`` were
+    detected on (map frame); ``sim3`` maps the estimate into the ground-truth frame.
+    """
+    n_est = len(est_levels.altitudes)
+    gt_alt = np.sort(np.asarray(gt_level_altitudes, dtype=np.float64))
+    out: dict[str, object] = {
+        'n_points': int(len(cloud)), 'gt_levels_m': [round(float(a), 3) for a in gt_alt],
+        'est_levels_m': [round(float(a), 3) for a in est_levels.altitudes],
+        'tolerance_m': tolerance_m}
+    if len(cloud) == 0 or n_est == 0 or len(gt_alt) == 0:
+        out.update(accuracy=None, est_to_gt=[], confusion=[])
+        return out
+    kf = np.asarray(kf_positions, dtype=np.float64).reshape(-1, 3)
+    kf_est_level = est_levels.assign(kf[:, 2]).astype(np.int64)
+    kf_gt_level = np.abs(sim3.apply(kf)[:, 2, None] - gt_alt[None]).argmin(axis=1)
+    flat = np.asarray(est_levels.flat, dtype=bool)
+    if flat.shape != (len(kf),):
+        flat = np.ones(len(kf), bool)
+    mapping = np.zeros(max(n_est, int(cloud.floor.max()) + 1), np.int64)
+    for k in range(len(mapping)):
+        sel = (kf_est_level == k) & flat
+        if not sel.any():
+            sel = kf_est_level == k
+        if sel.any():
+            mapping[k] = int(np.bincount(kf_gt_level[sel], minlength=len(gt_alt)).argmax())
+        else:
+            centre = np.append(kf[:, :2].mean(axis=0), est_levels.altitudes[min(k, n_est - 1)])
+            mapping[k] = int(np.abs(sim3.apply(centre[None])[0, 2] - gt_alt).argmin())
+    pts = sim3.apply(cloud.xyz.astype(np.float64))
+    truth = storey_of(pts[:, 2], gt_alt, tolerance_m)
+    pred = mapping[cloud.floor.astype(np.int64)]
+    conf = np.zeros((len(gt_alt), len(gt_alt)), np.int64)
+    np.add.at(conf, (truth, np.minimum(pred, len(gt_alt) - 1)), 1)
+    out.update(accuracy=float(np.mean(pred == truth)), est_to_gt=mapping[:n_est].tolist(),
+               confusion=conf.tolist())
+    return out
+
+
+def timing_stats(values_ms: Sequence[float]) -> dict[str, float | int | None]:
+    """``{'n', 'mean', 'median', 'p95', 'max'}`` of durations (ms); None entries when empty."""
+    v = np.asarray([x for x in values_ms if x is not None and np.isfinite(x)], dtype=np.float64)
+    if len(v) == 0:
+        return {'n': 0, 'mean': None, 'median': None, 'p95': None, 'max': None}
+    return {'n': int(len(v)), 'mean': round(float(v.mean()), 3),
+            'median': round(float(np.median(v)), 3),
+            'p95': round(float(np.percentile(v, 95)), 3), 'max': round(float(v.max()), 3)}
