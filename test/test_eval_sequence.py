@@ -137,7 +137,7 @@ def _save_shard(path: Path, frames: list[Frame]) -> Path:
         'camera': np.array(camera_to_json(CAM)), 'pairs': np.zeros((0, 2), np.int32),
         'corr_uv_a': np.zeros((0, 0, 2), np.float32),
         'corr_uv_b': np.zeros((0, 0, 2), np.float32), 'corr_count': np.zeros(0, np.int32),
-        'pair_overlap': np.zeros(0, np.float32)})
+        'pair_overlap': np.zeros(0, np.float32), 'moving_instances': np.zeros(0, np.int64)})
 
 
 def test_sequence_from_shard(tmp_path: Path, frames: list[Frame]) -> None:

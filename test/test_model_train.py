@@ -180,7 +180,8 @@ def test_shipped_config_files_match_the_code() -> None:
     assert set(raw['network']) == set(SemFeatNet.default_conf)
     conf = load_train_conf(read_config(REPO / 'config' / 'train.yaml'))
     assert conf['network'] == SemFeatNet.default_conf
-    assert conf['lr'] == 2e-4 and conf['warmup_fraction'] == 0.2
+    # paper: AdamW 2e-4 over 100 epochs; the shipped recipe raises it for its CPU step budget
+    assert conf['lr'] == 5e-4 and conf['warmup_fraction'] == 0.2
     assert conf['data']['rotation_deg'] == 30.0 and conf['data']['scale_range'] == [0.8, 1.2]
     with pytest.raises(ModelConfigError, match='unknown training config'):
         load_train_conf({'stepz': 3})

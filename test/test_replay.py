@@ -63,7 +63,8 @@ def test_clean_replay_diagnostics(live: dict) -> None:
     received, processed, dropped = (int(f[k]) for k in (
         'frames_received', 'frames_processed', 'frames_dropped'))
     assert received >= 150  # 20 s at 10 Hz, minus discovery at the start
-    assert received - 1 <= processed + dropped <= received  # every frame accounted for
+    # every frame accounted for (a snapshot may miss the one in inference and the one waiting)
+    assert received - 2 <= processed + dropped <= received
     assert all(code == 0 for code in live['run']['exit_codes'].values())
 
 
@@ -113,7 +114,7 @@ def test_double_speed_drops_instead_of_lagging(tmp_path: Path, domain: int) -> N
     f = run['diagnostics']['feature_node']
     received, processed, dropped = (int(f[k]) for k in (
         'frames_received', 'frames_processed', 'frames_dropped'))
-    assert received - 1 <= processed + dropped <= received
+    assert received - 2 <= processed + dropped <= received
     assert float(f['latency_p95_s']) < 1.0  # bounded: never a growing queue
     outputs = _read_outputs(tmp_path / 'out' / 'output_bag')
     assert outputs['counts'].get('/semfeat/tracks', 0) >= processed - 1
