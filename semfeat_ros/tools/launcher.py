@@ -36,7 +36,8 @@ def ros_environment(domain_id: int) -> dict[str, str]:
     """The environment of a child process: isolated domain, localhost discovery only."""
     env = dict(os.environ)
     env.update(ROS_DOMAIN_ID=str(domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
-               PYTHONUNBUFFERED='1', OPENBLAS_NUM_THREADS='1', RCUTILS_COLORIZED_OUTPUT='0')
+               PYTHONUNBUFFERED='1', OPENBLAS_NUM_THREADS='1', OMP_WAIT_POLICY='PASSIVE',
+               RCUTILS_COLORIZED_OUTPUT='0')
     env.pop('ROS_LOCALHOST_ONLY', None)
     return env
 
