@@ -1,11 +1,14 @@
 """Per-node health accounting published on /diagnostics (diagnostic_msgs/DiagnosticArray)."""
 from __future__ import annotations
 
+from collections.abc import Callable
 import math
 import time
 from typing import NoReturn
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+import rclpy
+from rclpy.executors import Executor, ExternalShutdownException
 import rclpy.logging
 from rclpy.node import Node
 
@@ -100,6 +103,27 @@ def startup_failed(node_name: str, exc: BaseException) -> NoReturn:
     rclpy.logging.get_logger(node_name).fatal(f'cannot start: {exc}')
     rclpy.try_shutdown()
     raise SystemExit(1)
+
+
+def spin_node(name: str, make_node: Callable[[], Node],
+              make_executor: Callable[[], Executor], args: list[str] | None = None) -> None:
+    """``main()`` of every node: init, build, spin until Ctrl-C or shutdown, clean up."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        try:
+            node = make_node()
+        except (OSError, ValueError) as exc:  # missing weights, bad parameters or config files
+            startup_failed(name, exc)
+        executor = make_executor()
+        executor.add_node(node)
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
 
 
 def wall_time() -> float:

@@ -13,8 +13,7 @@ import sys
 import threading
 from typing import Any
 
-import rclpy
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
@@ -25,7 +24,7 @@ from msg_adapters.image import to_rgb_or_mono
 from semfeat_ros.camera import CameraModel
 from semfeat_ros.frontend import FrontendConfig, FrontendError, SemanticFrontend
 from semfeat_ros.labels import load_labels
-from semfeat_ros.nodes.diagnostics import NodeHealth, startup_failed, wall_time
+from semfeat_ros.nodes.diagnostics import NodeHealth, spin_node, wall_time
 from semfeat_ros.nodes.params import declare_config, guard_updates, param
 from semfeat_ros.runtime import LatestWorker
 
@@ -181,22 +180,7 @@ class FeatureNode(Node):
 
 
 def main(args: list[str] | None = None) -> None:
-    rclpy.init(args=args)
-    node = None
-    try:
-        try:
-            node = FeatureNode()
-        except (OSError, ValueError) as exc:  # missing weights, bad parameters or config files
-            startup_failed('feature_node', exc)
-        executor = MultiThreadedExecutor(num_threads=2)
-        executor.add_node(node)
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    spin_node('feature_node', FeatureNode, lambda: MultiThreadedExecutor(num_threads=2), args)
 
 
 if __name__ == '__main__':

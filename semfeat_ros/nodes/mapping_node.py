@@ -18,8 +18,7 @@ from typing import Any
 from nav_msgs.msg import Odometry
 from nav_msgs.msg import Path as PathMsg
 import numpy as np
-import rclpy
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, NavSatFix, PointCloud2
@@ -40,7 +39,7 @@ from semfeat_ros.mapping import write_ply, write_tum
 from semfeat_ros.mapping.errors import MappingError
 from semfeat_ros.mapping.session import MappingSession, SessionConfig
 from semfeat_ros.mapping.types import Tracks
-from semfeat_ros.nodes.diagnostics import NodeHealth, startup_failed, wall_time
+from semfeat_ros.nodes.diagnostics import NodeHealth, spin_node, wall_time
 from semfeat_ros.nodes.params import declare_config, guard_updates, param
 from semfeat_ros.runtime import StampGuard
 
@@ -263,22 +262,7 @@ class MappingNode(Node):
 
 
 def main(args: list[str] | None = None) -> None:
-    rclpy.init(args=args)
-    node = None
-    try:
-        try:
-            node = MappingNode()
-        except (OSError, ValueError) as exc:  # missing weights, bad parameters or config files
-            startup_failed('mapping_node', exc)
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    spin_node('mapping_node', MappingNode, SingleThreadedExecutor, args)
 
 
 if __name__ == '__main__':

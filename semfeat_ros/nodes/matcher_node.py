@@ -14,8 +14,7 @@ import sys
 from typing import Any
 
 import numpy as np
-import rclpy
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
@@ -32,7 +31,7 @@ from semfeat_ros.camera import CameraModel
 from semfeat_ros.matching.draw import draw_track_result
 from semfeat_ros.matching.errors import MatchingError
 from semfeat_ros.matching.sequential import SequentialMatcher
-from semfeat_ros.nodes.diagnostics import NodeHealth, startup_failed, wall_time
+from semfeat_ros.nodes.diagnostics import NodeHealth, spin_node, wall_time
 from semfeat_ros.nodes.params import declare_config, guard_updates, param
 from semfeat_ros.pipeline import frame_features
 from semfeat_ros.runtime import StampGuard
@@ -191,22 +190,7 @@ class MatcherNode(Node):
 
 
 def main(args: list[str] | None = None) -> None:
-    rclpy.init(args=args)
-    node = None
-    try:
-        try:
-            node = MatcherNode()
-        except (OSError, ValueError) as exc:  # missing weights, bad parameters or config files
-            startup_failed('matcher_node', exc)
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    spin_node('matcher_node', MatcherNode, SingleThreadedExecutor, args)
 
 
 if __name__ == '__main__':
