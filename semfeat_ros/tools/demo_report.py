@@ -175,9 +175,13 @@ def _print(s: dict[str, Any]) -> None:
               f'  trajectory    ATE RMSE {t["ate_sim3_rmse_m"]:.3f} m (Sim(3))')
     elif t:
         print(f'  trajectory    {t.get("error")}')
+    else:
+        print('  trajectory    no pose estimates: the mapper did not initialise on this run')
     c = s.get('cloud')
     if c:
         print(f'  map           {c["points"]} points, {c["floors"]} floors, '
               f'{c["dynamic_points"]} dynamic')
+    else:
+        print('  map           no /semantic_cloud was published (no keyframes)')
     print(f'  wall time     {s["wall_time_s"]:.0f} s; files: '
           + ', '.join(Path(p).name for p in s['files'].values()))
