@@ -21,6 +21,7 @@ CONSOLE_SCRIPTS = [
     'semfeat-features = semfeat_ros.tools.features:cli',
     'semfeat-map = semfeat_ros.tools.map:cli',
     'semfeat-colmap-peer = semfeat_ros.tools.colmap_peer:cli',
+    'semfeat-bench = semfeat_ros.tools.bench:cli',
 ]
 
 setup(
