@@ -50,8 +50,6 @@ RELIABILITY_NAMES: dict[str, ReliabilityPolicy] = {
 }
 #: Depth of a replay publisher when the bag does not record one (rosbag2's default).
 DEFAULT_DEPTH = 10
-#: Storage file suffixes rosbags can open directly, without a metadata.yaml.
-STORAGE_SUFFIXES = ('.mcap', '.db3')
 
 
 def one_line(text: object) -> str:
@@ -91,23 +89,15 @@ def resolve_bag_path(path: str | os.PathLike[str]) -> Path:
         BagNotFoundError: the path does not exist, or is a directory without ``metadata.yaml``.
         BagFormatError: the path is a file of another kind.
     """
-    bag = Path(path)
-    if not bag.exists():
-        raise BagNotFoundError(f'bag {str(bag)!r} does not exist')
-    if bag.is_file() and bag.name == 'metadata.yaml':
-        return bag.parent
-    if bag.is_dir():
-        if not (bag / 'metadata.yaml').is_file():
-            storage = sorted(p.name for p in bag.iterdir() if p.suffix in STORAGE_SUFFIXES)
-            hint = f' (it holds {storage[0]!r}: pass that file instead)' if storage else ''
-            raise BagNotFoundError(
-                f'{str(bag)!r} is not a rosbag2 directory: no metadata.yaml in it{hint}')
-        return bag
-    if bag.suffix not in STORAGE_SUFFIXES:
-        raise BagFormatError(
-            f'{str(bag)!r} is not a bag: expected a rosbag2 directory or a '
-            f'{"/".join(STORAGE_SUFFIXES)} file, got a {bag.suffix or "suffix-less"} file')
-    return bag
+    from semfeat_ros.offline import bag as offline_bag
+    from semfeat_ros.offline import errors as offline_errors
+
+    try:
+        return offline_bag.resolve_bag_path(path)
+    except offline_errors.BagNotFoundError as exc:
+        raise BagNotFoundError(str(exc)) from None
+    except offline_errors.BagFormatError as exc:
+        raise BagFormatError(str(exc)) from None
 
 
 @contextmanager
