@@ -64,7 +64,11 @@ def test_double_speed_drops_instead_of_lagging(tmp_path: Path, domain: int) -> N
     received, processed, dropped = (int(f[k]) for k in (
         'frames_received', 'frames_processed', 'frames_dropped'))
     assert received - 2 <= processed + dropped <= received
-    assert float(f['latency_p95_s']) < 1.0  # bounded: never a growing queue
+    # Bounded, never a growing queue: a frame waits at most for the one in inference, so the
+    # stamp -> publish latency stays within about two processing times. Latency is measured on
+    # the node's clock (sim time, running at the replay rate); processing time on the wall.
+    compute_p95 = float(f['compute_p95_s'])
+    assert float(f['latency_p95_s']) < 2.0 * (2.0 * compute_p95 + 0.25), f
     outputs = _read_outputs(tmp_path / 'out' / 'output_bag')
     assert outputs['counts'].get('/semfeat/tracks', 0) >= processed - 1
 
