@@ -307,6 +307,8 @@ class LoadMonitor:
         out: dict[str, dict[str, float | None]] = {}
         for name, (t0, t1) in self.sections.items():
             loads = [v for t, v in self.samples if t0 <= t <= t1]
+            if not loads and self.samples:  # a section shorter than the period: nearest one
+                loads = [min(self.samples, key=lambda s: abs(s[0] - t1))[1]]
             out[name] = {'minutes': (t1 - t0) / 60.0,
                          'load1_mean': float(np.mean(loads)) if loads else None,
                          'load1_max': float(np.max(loads)) if loads else None}
