@@ -112,6 +112,18 @@ def test_extract_full_size_fisheye_frame() -> None:
     # labels agree with the mask under each keypoint (bilinear logits vs cell argmax: mostly)
     cells = np.clip(((f.keypoints + 0.5) / 12.0).astype(int), 0, [159, 127])
     assert np.mean(f.mask[cells[:, 1], cells[:, 0]] == f.labels) > 0.7
+    # outside the image circle the mask says 'no class' (255), inside it holds class ids
+    circle = cam.scaled(160, 128).valid_mask()
+    assert (~circle).any() and (f.mask[~circle] == 255).all() and f.mask[circle].max() < 19
+    # the input-resolution mask is the seg-grid mask resized nearest (blocks of 12 px)
+    f_in = _extractor(net, detection_threshold=0.0, max_keypoints=300, drop_classes=[],
+                      mask_resolution='input').extract(image, camera=cam)
+    assert f_in.mask.shape == (1536, 1920) and f_in.mask_scale == (1.0, 1.0)
+    full = cam.valid_mask()
+    both = circle & full[6::12, 6::12]  # (the two circles differ on their rim cells only)
+    assert both.sum() > 0.99 * circle.sum()
+    np.testing.assert_array_equal(f_in.mask[6::12, 6::12][both], f.mask[both])
+    assert (f_in.mask[~full] == 255).all()
 
 
 def test_grey_input_and_mask_resolutions() -> None:

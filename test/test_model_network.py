@@ -284,3 +284,55 @@ def test_descriptor_loss_all_negatives_penalises_collapse() -> None:
     assert float(loss_s) < float(loss_h)  # the mean over all negatives is below the hardest
     with pytest.raises(ModelConfigError):
         descriptor_loss(spread, spread, pts, pts, valid, 1.0, 0.2, 24.0, 'some')
+
+
+def test_descriptor_loss_sum_is_the_papers_sum_over_positives() -> None:
+    """'sum': eq. 7 with both sums divided by |P| (hand computation on the 3-point example)."""
+    da = torch.zeros(1, 2, 1, 3)
+    db = torch.zeros(1, 2, 1, 3)
+    da[0, :, 0, 0] = torch.tensor([1.0, 0.0])
+    da[0, :, 0, 1] = torch.tensor([0.0, 1.0])
+    da[0, :, 0, 2] = torch.tensor([1.0, 0.0])
+    db[0, :, 0, 0] = torch.tensor([0.6, 0.8])
+    db[0, :, 0, 1] = torch.tensor([0.0, 1.0])
+    db[0, :, 0, 2] = torch.tensor([-1.0, 0.0])
+    pts = torch.tensor([[[3.5, 3.5], [11.5, 3.5], [19.5, 3.5]]])
+    valid = torch.tensor([[True, True, True]])
+    loss, _ = descriptor_loss(da, db, pts, pts, valid, 1.0, 0.2, 4.0, 'sum')
+    sim = np.array([[0.6, 0.0, -1.0], [0.8, 1.0, 0.0], [0.6, 0.0, -1.0]])
+    pos_term = np.maximum(0, 1.0 - np.diag(sim)).sum() / 3
+    off = np.where(np.eye(3, dtype=bool), -np.inf, sim)
+    neg_term = np.maximum(0, off - 0.2).sum() / 3  # 0.6, 0.8, 0.6 above alpha
+    assert loss.item() == pytest.approx(pos_term + neg_term, abs=1e-6)
+    # the violators weigh the same however many satisfied negatives there are ('all' dilutes)
+    loss_all, _ = descriptor_loss(da, db, pts, pts, valid, 1.0, 0.2, 4.0, 'all')
+    assert loss_all.item() == pytest.approx(pos_term + np.maximum(0, off - 0.2).sum() / 6,
+                                            abs=1e-6)
+
+
+def test_class_balance_weights() -> None:
+    from semfeat_ros.model.losses import class_balance_weights
+
+    counts = np.array([1000, 100, 10, 0])
+    np.testing.assert_allclose(class_balance_weights(counts, 0.0, 10.0), np.ones(4))
+    w = class_balance_weights(counts, 0.5, 10.0)
+    # median frequency of the present classes is that of the 100-pixel class
+    np.testing.assert_allclose(w, [np.sqrt(0.1), 1.0, np.sqrt(10.0), 10.0], rtol=1e-6)
+    w = class_balance_weights(counts, 1.0, 5.0)
+    np.testing.assert_allclose(w, [0.2, 1.0, 5.0, 5.0], rtol=1e-6)
+    with pytest.raises(ModelConfigError):
+        class_balance_weights(np.array([-1, 2]), 0.5, 10.0)
+    with pytest.raises(ModelConfigError, match='seg_max_class_weight'):
+        MultiTaskLoss({'seg_max_class_weight': 0.5})
+    # the weights reach the cross-entropy
+    torch.manual_seed(0)
+    net = SemFeatNet({'encoder_channels': [8, 8, 16], 'decoder_channels': 16}).eval()
+    pred = net(torch.randn(2, 3, 32, 32))
+    batch = {'kp_target': torch.zeros(2, 32, 32), 'kp_valid': torch.ones(2, 32, 32, dtype=bool),
+             'label': torch.randint(0, 19, (2, 32, 32)), 'points_a': torch.rand(1, 4, 2) * 31,
+             'points_b': torch.rand(1, 4, 2) * 31, 'corr_valid': torch.ones(1, 4, dtype=bool)}
+    weights = np.linspace(0.5, 3.0, 19).astype(np.float32)
+    _, logs = MultiTaskLoss({}, weights)(pred, batch)
+    expected = segmentation_loss(pred['segmentation_logits'], batch['label'],
+                                 torch.from_numpy(weights), full_resolution=False)
+    assert logs['seg'] == pytest.approx(float(expected), rel=1e-5)

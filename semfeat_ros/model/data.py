@@ -682,6 +682,14 @@ class PairGenerator:
         p = np.array([mix[k] for k in self.kinds])
         self.kind_p = p / p.sum()
 
+    def class_counts(self, num_classes: int) -> np.ndarray:
+        """(num_classes,) int64 labelled pixel counts over the rendered frames (255 ignored)."""
+        counts = np.zeros(num_classes, np.int64)
+        for i in self.sim_frames:
+            lab = self.frames[i].label
+            counts += np.bincount(lab[lab < num_classes].ravel(), minlength=num_classes)
+        return counts
+
     # -- pair construction
 
     def _crop_origin(self, frame: Frame, rng: np.random.Generator) -> np.ndarray:

@@ -133,6 +133,8 @@ class FeatureExtractor:
         'subpixel': True,  # quadratic sub-pixel refinement of the keypoint position
         'drop_classes': ['sky', 'car', 'pedestrian'],  # class names (or ids) never returned
         'mask_resolution': 'seg',  # 'seg' (1/4 of network input), 'network' or 'input' size
+        #                            ('input': the seg-grid argmax resized nearest, cheap)
+        'mask_outside': 255,  # class id written outside the camera's image circle (255: none)
         'num_threads': 2,  # torch.set_num_threads (intra-op CPU threads)
         'channels_last': True,  # NHWC memory format (measured ~1.5-2x faster on CPU)
         'bf16': False,  # bfloat16 autocast (faster on CPUs with AVX512-BF16/AMX, less exact)
@@ -189,6 +191,9 @@ class FeatureExtractor:
         if not 0.0 <= float(c['detection_threshold']) <= 1.0:
             raise ModelConfigError(
                 f'detection_threshold must be in [0, 1], got {c["detection_threshold"]!r}')
+        if not isinstance(c['mask_outside'], int) or not 0 <= c['mask_outside'] <= 255:
+            raise ModelConfigError(
+                f'mask_outside must be an integer class id in [0, 255], got {c["mask_outside"]!r}')
         if c['mask_resolution'] not in ('seg', 'network', 'input'):
             raise ModelConfigError("mask_resolution must be 'seg', 'network' or 'input', got "
                                    f'{c["mask_resolution"]!r}')
@@ -326,6 +331,8 @@ class FeatureExtractor:
             else:
                 descriptors = torch.zeros((0, desc.shape[1]))
             mask, mask_size = self._mask(seg_logits, (w, h), (in_w, in_h))
+            if camera is not None:
+                mask[~self._circle(camera, mask_size)] = c['mask_outside']
         sx, sy = in_w / w, in_h / h
         kp_in = kpts.numpy().astype(np.float64)
         kp_in[:, 0] = (kp_in[:, 0] + 0.5) * sx - 0.5
@@ -341,17 +348,32 @@ class FeatureExtractor:
 
     def _mask(self, seg_logits: torch.Tensor, net_size: tuple[int, int],
               in_size: tuple[int, int]) -> tuple[np.ndarray, tuple[int, int]]:
-        """Class-id mask at the configured resolution and its (w, h) px."""
+        """Class-id mask at the configured resolution and its (w, h) px.
+
+        'seg' is the argmax of the stride-4 logits; 'network' upsamples the logits bilinearly
+        to the network input first (smoother class borders, ~19x the argmax work); 'input'
+        resizes the 'seg' mask to the input size by nearest neighbour (the cheap path for
+        publishing a full-resolution mask: a block of 4 / scale px per logit cell).
+        """
         res = self.conf['mask_resolution']
-        if res == 'seg':
+        if res == 'network':
+            w, h = net_size
+            up = F.interpolate(seg_logits, size=(h, w), mode='bilinear', align_corners=False)
+            m = up[0].argmax(dim=0).to(torch.uint8).numpy()
+        else:
             m = seg_logits[0].argmax(dim=0).to(torch.uint8).numpy()
-            return m, (m.shape[1], m.shape[0])
-        w, h = net_size
-        up = F.interpolate(seg_logits, size=(h, w), mode='bilinear', align_corners=False)
-        m = up[0].argmax(dim=0).to(torch.uint8).numpy()
-        if res == 'input':
-            m = cv2.resize(m, in_size, interpolation=cv2.INTER_NEAREST)
-        return m, (m.shape[1], m.shape[0])
+            if res == 'input':
+                m = cv2.resize(m, in_size, interpolation=cv2.INTER_NEAREST)
+        return np.ascontiguousarray(m), (m.shape[1], m.shape[0])
+
+    def _circle(self, camera: Any, size: tuple[int, int]) -> np.ndarray:
+        """(h, w) bool image circle of ``camera`` at ``size`` = (w, h) px (cached)."""
+        key = ('circle', camera, size)
+        if key not in self._mask_cache:
+            self._mask_cache[key] = camera.scaled(*size).valid_mask()
+            if len(self._mask_cache) > 8:
+                self._mask_cache.pop(next(iter(self._mask_cache)))
+        return self._mask_cache[key]
 
 
 def _sample_map(fmap: torch.Tensor, points: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:

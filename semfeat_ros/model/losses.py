@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 import torch
 import torch.nn.functional as F  # noqa: N812 - the usual torch alias
 
@@ -25,10 +26,16 @@ default_loss_conf: dict[str, Any] = {
     'desc_pos_margin': 1.0,  # m: positives are penalised by max(0, m - cos)
     'desc_neg_margin': 0.2,  # alpha (paper): negatives are penalised by max(0, cos - alpha)
     'desc_neg_radius': 8.0,  # px (input resolution): candidates closer than this are not negatives
-    'desc_negatives': 'hardest',  # 'hardest' (HardNet-style mining) or 'all' (every candidate pair
-    #                               beyond the radius, averaged, as in SuperPoint's version of the
-    #                               same margin loss: dense gradients that resist collapse)
+    'desc_negatives': 'hardest',  # 'hardest' (HardNet-style mining), 'all' (every candidate pair
+    #                               beyond the radius, averaged over the candidates) or 'sum' (the
+    #                               paper's sum over negative pairs, divided like the positive sum
+    #                               by the number of positives: violators are not diluted by the
+    #                               many negatives that already satisfy the margin)
     'seg_full_resolution': False,  # CE at the label resolution (paper) or at the logit stride
+    'seg_class_balance': 0.0,  # exponent p of the class weights (median freq / freq) ** p
+    #                            (0: plain CE as in the paper; 0.5: rare classes such as parking
+    #                            lines, curbs and pillars count more)
+    'seg_max_class_weight': 10.0,  # upper clip of those weights
 }
 
 
@@ -96,8 +103,10 @@ def descriptor_loss(desc_a: torch.Tensor, desc_b: torch.Tensor, points_a: torch.
         pos_margin: m, positives cost ``max(0, m - sim)``.
         neg_margin: alpha, negatives cost ``max(0, sim - alpha)``.
         neg_radius: px, exclusion radius around the true match for negatives.
-        negatives: 'hardest' (one mined negative per point and direction) or 'all' (the mean
-            of ``max(0, sim - alpha)`` over every candidate pair beyond ``neg_radius``).
+        negatives: 'hardest' (one mined negative per point and direction), 'all' (the mean
+            of ``max(0, sim - alpha)`` over every candidate pair beyond ``neg_radius``) or 'sum'
+            (the sum of that term over every candidate pair, divided by the number of valid
+            positives: eq. 7 with both sums normalised by |P|).
     Returns:
         ``(loss, stats)``: scalar loss (mean positive term + mean negative term, 0 if no valid
         pair) and detached statistics ``pos_sim``, ``neg_sim`` (means).
@@ -128,13 +137,17 @@ def descriptor_loss(desc_a: torch.Tensor, desc_b: torch.Tensor, points_a: torch.
     if negatives == 'all':
         cf = cand.to(sim.dtype)
         neg_term = (F.relu(sim - neg_margin) * cf).sum() / cf.sum().clamp(min=1)
+    elif negatives == 'sum':
+        cf = cand.to(sim.dtype)
+        neg_term = (F.relu(sim - neg_margin) * cf).sum() / n_valid
     elif negatives == 'hardest':
         neg_ab = F.relu(hard_ab - neg_margin) * has_ab.to(sim.dtype)
         neg_ba = F.relu(hard_ba - neg_margin) * has_ba.to(sim.dtype)
         n_neg = (has_ab.sum() + has_ba.sum()).clamp(min=1).to(sim.dtype)
         neg_term = (neg_ab.sum() + neg_ba.sum()) / n_neg
     else:
-        raise ModelConfigError(f"desc_negatives must be 'hardest' or 'all', got {negatives!r}")
+        raise ModelConfigError(
+            f"desc_negatives must be 'hardest', 'all' or 'sum', got {negatives!r}")
     stats = {
         'pos_sim': ((pos * vf).sum() / n_valid).detach(),
         'neg_sim': ((hard_ab * has_ab).sum() / has_ab.sum().clamp(min=1)).detach(),
@@ -177,10 +190,40 @@ def segmentation_loss(logits: torch.Tensor, labels: torch.Tensor,
     return F.cross_entropy(logits, labels, weight=class_weights, ignore_index=IGNORE_LABEL)
 
 
+def class_balance_weights(counts: np.ndarray, power: float, max_weight: float) -> np.ndarray:
+    """Per-class CE weights ``clip((median(f) / f) ** power, 1 / max_weight, max_weight)``.
+
+    Args:
+        counts: (C,) labelled pixel counts per class in the training data.
+        power: p; 0 gives all ones (plain CE).
+        max_weight: clip of the weights (a class absent from the data gets ``max_weight``).
+    Returns:
+        (C,) float32 weights.
+    """
+    counts = np.asarray(counts, np.float64)
+    if counts.ndim != 1 or (counts < 0).any():
+        raise ModelConfigError(f'class counts must be a 1-D array >= 0, got {counts!r}')
+    if power == 0 or counts.sum() <= 0:
+        return np.ones(len(counts), np.float32)
+    freq = counts / counts.sum()
+    med = float(np.median(freq[freq > 0]))
+    with np.errstate(divide='ignore'):
+        w = np.where(freq > 0, (med / np.maximum(freq, 1e-12)) ** power, max_weight)
+    return np.clip(w, 1.0 / max_weight, max_weight).astype(np.float32)
+
+
 class MultiTaskLoss:
     """L_total = w_kp L_kp + w_desc L_desc + w_seg L_seg (paper eq. 9: alpha, beta, gamma)."""
 
-    def __init__(self, conf: dict[str, Any] | None = None) -> None:
+    def __init__(self, conf: dict[str, Any] | None = None,
+                 class_weights: np.ndarray | None = None) -> None:
+        """Args:
+            conf: loss config (keys of :data:`default_loss_conf`).
+            class_weights: optional (C,) segmentation CE weights (see
+                :func:`class_balance_weights`); None: unweighted.
+        """
+        self.class_weights = None if class_weights is None else torch.as_tensor(
+            np.asarray(class_weights, np.float32))
         self.conf = conf = {**default_loss_conf, **(conf or {})}
         unknown = set(conf) - set(default_loss_conf)
         if unknown:
@@ -192,11 +235,15 @@ class MultiTaskLoss:
                     raise ModelConfigError(f'loss.{key} must be true or false, got {value!r}')
                 continue
             if key == 'desc_negatives':
-                if value not in ('hardest', 'all'):
-                    raise ModelConfigError(f"loss.{key} must be 'hardest' or 'all', got {value!r}")
+                if value not in ('hardest', 'all', 'sum'):
+                    raise ModelConfigError(
+                        f"loss.{key} must be 'hardest', 'all' or 'sum', got {value!r}")
                 continue
             if not isinstance(value, int | float) or isinstance(value, bool) or value < 0:
                 raise ModelConfigError(f'loss.{key} must be a number >= 0, got {value!r}')
+        if conf['seg_max_class_weight'] < 1:
+            raise ModelConfigError(f'loss.seg_max_class_weight must be >= 1, got '
+                                   f'{conf["seg_max_class_weight"]!r}')
 
     def __call__(self, pred: dict[str, torch.Tensor], batch: dict[str, torch.Tensor]
                  ) -> tuple[torch.Tensor, dict[str, float]]:
@@ -221,6 +268,7 @@ class MultiTaskLoss:
             c['desc_pos_margin'], c['desc_neg_margin'], c['desc_neg_radius'],
             c['desc_negatives'])
         l_seg = segmentation_loss(pred['segmentation_logits'], batch['label'],
+                                  class_weights=self.class_weights,
                                   full_resolution=c['seg_full_resolution'])
         total = c['w_kp'] * l_kp + c['w_desc'] * l_desc + c['w_seg'] * l_seg
         logs = {'loss': float(total.detach()), 'kp': float(l_kp.detach()),

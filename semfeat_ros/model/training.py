@@ -46,7 +46,12 @@ from semfeat_ros.model.data import (
 )
 from semfeat_ros.model.errors import DatasetError, ModelConfigError
 from semfeat_ros.model.extractor import detect_keypoints
-from semfeat_ros.model.losses import MultiTaskLoss, default_loss_conf, sample_descriptors
+from semfeat_ros.model.losses import (
+    MultiTaskLoss,
+    class_balance_weights,
+    default_loss_conf,
+    sample_descriptors,
+)
 from semfeat_ros.model.metrics import (
     confusion_matrix,
     matching_precision,
@@ -201,6 +206,7 @@ class Validator:
 
     def __init__(self, gen: PairGenerator, conf: dict[str, Any]) -> None:
         self.conf = conf
+        self.static = np.asarray(gen.labels.static, bool)
         self.items: list[tuple[PairSample, dict[str, np.ndarray]]] = []
         for k in range(conf['val_pairs']):
             rng = np.random.default_rng([gen.seed, 104729, k])
@@ -248,9 +254,12 @@ class Validator:
                 m_correct += correct
                 m_scored += scored
         model.train(was_training)
-        miou, _ = mean_iou(cm)
+        miou, iou = mean_iou(cm)
+        iou_static = iou[: len(self.static)][self.static]
         out = {f'val_{k}': float(np.mean([lg[k] for lg in losses])) for k in losses[0]}
         out.update(val_miou=miou,
+                   val_miou_static=float(np.nanmean(iou_static)) if np.isfinite(
+                       iou_static).any() else float('nan'),
                    val_repeatability=rep_hits / rep_checked if rep_checked else float('nan'),
                    val_precision=m_correct / m_scored if m_scored else float('nan'),
                    val_matches=m_scored / max(len(self.items), 1))
@@ -394,7 +403,10 @@ def main(conf: dict[str, Any], out: Path, *, resume: bool = False, export: Path 
     model = SemFeatNet(c['network'])
     if c['channels_last']:
         model = model.to(memory_format=torch.channels_last)
-    crit = MultiTaskLoss(c['loss'])
+    class_counts = gen.class_counts(c['network']['num_classes'])
+    class_weights = class_balance_weights(class_counts, c['loss']['seg_class_balance'],
+                                          c['loss']['seg_max_class_weight'])
+    crit = MultiTaskLoss(c['loss'], class_weights)
     opt = torch.optim.AdamW(model.parameters(), lr=c['lr'], weight_decay=c['weight_decay'])
     ckpt = out / 'checkpoints' / 'last.pt'
     start = 0
@@ -476,6 +488,7 @@ def main(conf: dict[str, Any], out: Path, *, resume: bool = False, export: Path 
             'train_seeds': sorted(set(train_seeds)), 'val_seeds': sorted(set(val_seeds)),
             'train_frames': len(gen.sim_frames), 'drive_pairs': len(gen.drive_pairs),
             'photos': [gen.frames[i].name for i in gen.photo_frames],
+            'seg_class_weights': [round(float(x), 4) for x in class_weights],
             'parameters': count_parameters(model),
             'finished': datetime.now(UTC).isoformat(timespec='seconds'),
             'validation': val_metrics,
@@ -555,7 +568,10 @@ AdamW, lr {conf['lr']}, weight decay {conf['weight_decay']}, {t['steps']} steps 
 block(s) frozen (the paper's 20 of 100 epochs), then joint fine-tuning with cosine decay. Loss
 weights: kp {conf['loss']['w_kp']}, desc {conf['loss']['w_desc']}, seg {conf['loss']['w_seg']};
 BCE positive weight {conf['loss']['kp_pos_weight']}; descriptor margins m =
-{conf['loss']['desc_pos_margin']}, alpha = {conf['loss']['desc_neg_margin']}.
+{conf['loss']['desc_pos_margin']}, alpha = {conf['loss']['desc_neg_margin']}, negatives
+`{conf['loss']['desc_negatives']}` beyond {conf['loss']['desc_neg_radius']} px; segmentation CE
+class weights (median frequency / frequency) ** {conf['loss']['seg_class_balance']} clipped to
+{conf['loss']['seg_max_class_weight']}: {t.get('seg_class_weights')}.
 
 Rebuild: `semfeat-train --config config/train.yaml --out {out} --export semfeat_ros/weights`.
 
@@ -563,7 +579,8 @@ Rebuild: `semfeat-train --config config/train.yaml --out {out} --export semfeat_
 
 | metric | value |
 |---|---|
-| segmentation mIoU | {fmt(v.get('val_miou'))} |
+| segmentation mIoU (all classes) | {fmt(v.get('val_miou'))} |
+| segmentation mIoU (static classes) | {fmt(v.get('val_miou_static'))} |
 | keypoint repeatability ({tol} px, top {conf['val_max_keypoints']}) | {rep} |
 | descriptor matching precision (mutual NN, {tol} px) | {fmt(v.get('val_precision'))} |
 | mean mutual-NN matches scored per pair | {fmt(v.get('val_matches'))} |
