@@ -97,20 +97,23 @@ def test_pose_refinement_full_sphere_with_outliers() -> None:
     assert est.covariance is not None and np.all(np.linalg.eigvalsh(est.covariance) > 0)
 
 
-def test_relative_pose_from_bearings_beyond_90_degrees() -> None:
+def test_two_view_points_for_a_known_motion_beyond_90_degrees() -> None:
     rng = np.random.default_rng(4)
-    X = rng.uniform(-10, 10, (200, 3))
+    X = rng.uniform(-10, 10, (200, 3))  # all around the camera: half of it beyond 90 degrees
     R = geo.so3_exp(np.array([0.02, 0.3, -0.05]))
     t = np.array([0.2, 0.05, 1.0])
     b1 = geo.unit(X)
     b2 = geo.unit(X @ R.T + t)
     b2[:20] = geo.unit(rng.normal(size=(20, 3)))
-    rp = geo.relative_pose_bearings(b1, b2, 2e-3, rng)
-    assert rp is not None
-    assert np.allclose(rp.R, R, atol=1e-9)
-    assert np.allclose(rp.t, t / np.linalg.norm(t), atol=1e-9)
+    rp = geo.relative_pose_known_motion(R, 3.0 * t, b1, b2, 2e-3)
+    assert np.allclose(rp.t, t / np.linalg.norm(t))
     assert rp.inliers[20:].mean() > 0.95 and rp.inliers[:20].sum() <= 2
-    assert geo.relative_pose_bearings(b1[:5], b2[:5], 2e-3, rng) is None
+    # unit-baseline points: times the baseline they are the true points
+    ok = rp.inliers
+    np.testing.assert_allclose(rp.points[ok] * np.linalg.norm(t), X[ok], atol=1e-6)
+    assert (X[ok][:, 2] < 0).any()  # points behind the image plane are kept
+    with pytest.raises(ValueError):
+        geo.relative_pose_known_motion(R, np.zeros(3), b1, b2, 2e-3)
 
 
 def test_plane_fit_and_yaw_alignment() -> None:

@@ -31,9 +31,15 @@ default_conf: dict[str, Any] = {
     'kf_min_distance_m': 0.05,  # ... but never while the base moved less than this (m)
     # ---- two-view initialisation ------------------------------------------------------------
     'init_min_tracks': 40,  # common static tracks needed between the two views
-    'init_min_parallax_deg': 3.0,  # median bearing angle between the views (deg) to try
+    'init_min_parallax_deg': 3.0,  # try once init_min_tracks / 2 common tracks have a bearing
+    #                                angle between the views above this (deg)
     'init_ransac_px': 1.5,  # epipolar RANSAC threshold (px, through the focal length)
     'init_min_inlier_ratio': 0.6,  # minimum fraction of essential-matrix inliers
+    'init_odom_max_angle_deg': 15.0,  # with odometry: a RANSAC translation farther than this
+    #                                   from the odometry direction is replaced by the odometry
+    #                                   motion refined on the tracks within ...
+    'init_odom_gate_px': 4.0,  # ... this epipolar gate (px through the focal length)
+    'init_odom_min_inlier_ratio': 0.3,  # with odometry: fraction of tracks that must be inliers
     'init_max_frames': 40,  # frames without success before the reference view is replaced
     'init_require_metric': True,  # camera-only: retry until the ground plane gives the scale
     # ---- landmarks ----------------------------------------------------------------------------
@@ -68,8 +74,10 @@ default_conf: dict[str, Any] = {
     'gnss_min_sigma_m': 0.02,  # floor of the fix sigma (m): never a zero covariance
     'gnss_max_age_s': 1.0,  # a fix is attached to a keyframe at most this long after it (s)
     'gnss_lever_arm_m': [0.0, 0.0, 0.0],  # antenna position in base_link (m)
-    'gnss_align_min_fixes': 5,  # fixes needed before the map is aligned to ENU
-    'gnss_align_min_span_m': 5.0,  # horizontal extent those fixes must cover (m)
+    'gnss_align_min_fixes': 10,  # fixes needed before the map is aligned to ENU
+    'gnss_align_min_span_m': 15.0,  # horizontal extent those fixes must cover (m): over 5 m
+    #                                the yaw from fixes with ~0.1 m noise is off by degrees,
+    #                                which moves the marginalised map by decimetres (tested)
     'gnss_align_max_rms_m': 1.5,  # alignment residual above which it is retried later (m)
     'gnss_gate_chi2': 16.27,  # chi-square gate (3 dof, 99.9 %) of a fix against the estimate
     'gnss_gate_sigma_m': 0.5,  # position uncertainty of the estimate used in the gate (m)
@@ -112,7 +120,8 @@ _CHOICES = {
 }
 _POSITIVE = (
     'bearing_sigma_px', 'robust_k', 'outlier_chi2', 'max_reprojection_px', 'kf_parallax_deg',
-    'kf_max_distance_m', 'init_min_parallax_deg', 'init_ransac_px', 'lm_min_depth_m',
+    'kf_max_distance_m', 'init_min_parallax_deg', 'init_ransac_px', 'init_odom_gate_px',
+    'init_odom_max_angle_deg', 'lm_min_depth_m',
     'lm_max_depth_m', 'ground_sigma_m', 'ground_max_distance_m', 'init_plane_threshold_m',
     'odom_min_sigma', 'gnss_max_sigma_m', 'gnss_min_sigma_m', 'gnss_max_age_s',
     'gnss_align_min_span_m', 'gnss_align_max_rms_m', 'gnss_gate_chi2', 'gnss_gate_sigma_m',
@@ -129,7 +138,8 @@ _INT_MIN = {
     'cloud_min_obs': 1,
     'max_map_points': 1, 'seed': 0,
 }
-_FRACTIONS = ('kf_min_tracked_fraction', 'init_min_inlier_ratio', 'dynamic_max_fraction')
+_FRACTIONS = ('kf_min_tracked_fraction', 'init_min_inlier_ratio', 'init_odom_min_inlier_ratio',
+              'dynamic_max_fraction')
 
 
 def merge_conf(conf: dict[str, Any] | None = None) -> dict[str, Any]:

@@ -281,14 +281,6 @@ def refine_pose_bearings(T_w_c: np.ndarray, points_w: np.ndarray, bearings: np.n
 # ------------------------------------------------------------------------------------------------
 
 
-def _essential_8pt(b1: np.ndarray, b2: np.ndarray) -> np.ndarray:
-    A = (b2[:, :, None] * b1[:, None, :]).reshape(len(b1), 9)
-    _, _, Vt = np.linalg.svd(A)
-    E = Vt[-1].reshape(3, 3)
-    U, _, Vt = np.linalg.svd(E)
-    return U @ np.diag([1.0, 1.0, 0.0]) @ Vt
-
-
 def epipolar_error(E: np.ndarray, b1: np.ndarray, b2: np.ndarray) -> np.ndarray:
     """Angular distance (rad, small angle) of bearings to their epipolar planes (larger side)."""
     Eb1 = b1 @ E.T
@@ -321,61 +313,26 @@ def _cheirality(R: np.ndarray, t: np.ndarray, b1: np.ndarray, b2: np.ndarray
     return good, pts
 
 
-def relative_pose_bearings(b1: np.ndarray, b2: np.ndarray, threshold: float,
-                           rng: np.random.Generator, *, iterations: int = 300,
-                           confidence: float = 0.999) -> RelativePose | None:
-    """Calibrated relative pose from bearing correspondences (RANSAC + 8-point on the sphere).
+def relative_pose_known_motion(R: np.ndarray, t: np.ndarray, b1: np.ndarray, b2: np.ndarray,
+                               threshold: float) -> RelativePose:
+    """Two-view inliers and points for a motion known from elsewhere (wheel odometry).
 
-    Works for bearings on the whole sphere (fisheye points beyond 90 degrees off-axis included),
-    unlike solvers on normalised image coordinates. ``threshold`` is the epipolar error (rad).
-    Returns ``None`` when fewer than 8 correspondences or no consistent model exist.
+    ``x2 = R x1 + t`` with ``t`` of any non-zero length (normalised here); a correspondence is
+    an inlier when its epipolar error under ``E = [t]x R`` is below ``threshold`` (rad) and it
+    triangulates in front of both views. Points are for a unit baseline (metres once multiplied
+    by the baseline length). The motion itself comes from
+    :func:`semfeat_ros.matching.geometry.verify_bearings` (5-point RANSAC) or odometry.
     """
+    t = np.asarray(t, dtype=np.float64)
+    norm = float(np.linalg.norm(t))
+    if not norm > 0:
+        raise ValueError('relative_pose_known_motion: the translation must not be zero')
+    t = t / norm
     b1 = unit(np.asarray(b1, dtype=np.float64))
     b2 = unit(np.asarray(b2, dtype=np.float64))
-    n = len(b1)
-    if n < 8:
-        return None
-    best = np.zeros(n, bool)
-    max_iter = iterations
-    it = 0
-    while it < max_iter:
-        it += 1
-        sample = rng.choice(n, 8, replace=False)
-        E = _essential_8pt(b1[sample], b2[sample])
-        inl = epipolar_error(E, b1, b2) < threshold
-        if inl.sum() > best.sum():
-            best = inl
-            ratio = best.mean()
-            denom = np.log(max(1.0 - ratio**8, 1e-12))
-            if denom < -1e-9:  # adaptive stop once a good model is very likely found
-                max_iter = min(iterations, int(np.ceil(np.log(1 - confidence) / denom)) + 1)
-    if best.sum() < 8:
-        return None
-    for _ in range(3):  # refit on the inliers, re-select
-        E = _essential_8pt(b1[best], b2[best])
-        new = epipolar_error(E, b1, b2) < threshold
-        if new.sum() < 8:
-            break
-        best = new
-    U, _, Vt = np.linalg.svd(E)
-    if np.linalg.det(U) < 0:
-        U = -U
-    if np.linalg.det(Vt) < 0:
-        Vt = -Vt
-    W = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-    candidates = [(U @ W @ Vt, U[:, 2]), (U @ W @ Vt, -U[:, 2]),
-                  (U @ W.T @ Vt, U[:, 2]), (U @ W.T @ Vt, -U[:, 2])]
-    scored = []
-    for R, t in candidates:
-        good, pts = _cheirality(R, t, b1[best], b2[best])
-        scored.append((int(good.sum()), R, t))
-    scored.sort(key=lambda s: -s[0])
-    _, R, t = scored[0]
-    good_all, pts_all = _cheirality(R, t, b1, b2)
-    inliers = best & good_all
-    if inliers.sum() < 8:
-        return None
-    return RelativePose(R, t, inliers, pts_all)
+    epi = epipolar_error(skew(t) @ R, b1, b2) < threshold
+    good, pts = _cheirality(R, t, b1, b2)
+    return RelativePose(np.asarray(R, dtype=np.float64), t, epi & good, pts)
 
 
 # ------------------------------------------------------------------------------------------------

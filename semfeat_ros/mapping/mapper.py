@@ -38,7 +38,7 @@ from semfeat_ros.mapping.geometry import (
     angle_between,
     fit_plane_ransac,
     refine_pose_bearings,
-    relative_pose_bearings,
+    relative_pose_known_motion,
     se3_exp,
     se3_inv,
     se3_log,
@@ -46,6 +46,7 @@ from semfeat_ros.mapping.geometry import (
     triangulate_bearings,
 )
 from semfeat_ros.mapping.types import GnssFix, MapperResult, OdometryDelta, Tracks
+from semfeat_ros.matching.geometry import refine_pose, verify_bearings
 
 STATES = ('initializing', 'tracking', 'odometry_only', 'lost')
 # What gtsam raises from a failed update: IndeterminantLinearSystem and cheirality/other C++
@@ -610,25 +611,44 @@ class Mapper:
         ids = [int(frame.track_id[i]) for i in idx]
         b1 = np.array([ref['obs'][t][0] for t in ids])
         b2 = frame.bearing[idx]
-        if np.degrees(np.median(angle_between(b1, b2))) < c['init_min_parallax_deg']:
+        # enough tracks with parallax (not the median: on an open deck most tracks are far)
+        par0 = angle_between(b1, b2)
+        if (par0 >= np.radians(c['init_min_parallax_deg'])).sum() < c['init_min_tracks'] // 2:
             return None, False
-        rp = relative_pose_bearings(b1, b2, c['init_ransac_px'] / self.camera.fx, self._rng)
-        if rp is None or rp.inliers.mean() < c['init_min_inlier_ratio']:
+        # relative motion: the matcher's 5-point RANSAC on bearings (+ LM refinement); with
+        # wheel odometry its length gives the scale, and when RANSAC fails (forward motion with
+        # a few degrees of parallax) the odometry motion, refined on the tracks, replaces it
+        # (odometry alone is not enough: it is planar and misses the body's pitch and roll)
+        metric = True
+        thr = c['init_ransac_px'] / self.camera.fx
+        from_odom = self._ref_odom.ok and c['use_odometry']
+        ver = verify_bearings(b1, b2, {'threshold_rad': thr, 'seed': c['seed'],
+                                       'min_inliers': 8})
+        R, t = (ver.R, ver.t) if ver.ok and ver.model == 'essential' else (None, None)
+        if R is not None and ver.inlier_ratio < c['init_min_inlier_ratio']:
+            R, t = None, None
+        if from_odom:
+            T_c2c1 = se3_inv(self.T_cb @ self._ref_odom.T @ self.T_bc)
+            s = float(np.linalg.norm(T_c2c1[:3, 3]))
+            if s < 0.05:
+                return None, False
+            t_odom = T_c2c1[:3, 3] / s
+            if R is None or np.degrees(angle_between(t, t_odom)) > c['init_odom_max_angle_deg']:
+                gate = relative_pose_known_motion(T_c2c1[:3, :3], t_odom, b1, b2,
+                                                  c['init_odom_gate_px'] / self.camera.fx)
+                R, t = refine_pose(T_c2c1[:3, :3], t_odom, b1[gate.inliers], b2[gate.inliers])
+        if R is None:
+            return None, False
+        rp = relative_pose_known_motion(R, t, b1, b2, thr)
+        if rp.inliers.mean() < (c['init_odom_min_inlier_ratio'] if from_odom
+                                else c['init_min_inlier_ratio']):
             return None, False
         par = angle_between(b1, b2 @ rp.R)
         good = rp.inliers & (par >= np.radians(c['lm_min_parallax_deg']))
         if good.sum() < c['init_min_tracks'] // 2:
             return None, False
-        # metric scale: odometry, else the ground plane at the camera height
-        metric = True
-        if self._ref_odom.ok and c['use_odometry']:
-            T_rel_c = self.T_cb @ self._ref_odom.T @ self.T_bc
-            s = float(np.linalg.norm(T_rel_c[:3, 3]))
-            if s < 0.05:
-                return None, False
-            from_odom = True
-        else:
-            from_odom = False
+        # metric scale: odometry (above), else the ground plane at the camera height
+        if not from_odom:
             s = self._ground_scale(rp.points, good, ids)
             if s is None:
                 self._init_attempts += 1
