@@ -179,3 +179,30 @@ def test_binary_ratio_threshold_and_labels() -> None:
     assert pairs(m) == {(0, 1)}
     with pytest.raises(FeatureInputError, match='uint8'):
         match_binary(d0.astype(np.float32), d1)
+
+
+@pytest.mark.parametrize('kind', ['float', 'binary'])
+def test_spatial_gate_restricts_candidates(kind: str) -> None:
+    rng = np.random.default_rng(3)
+    if kind == 'float':
+        d0 = rng.normal(size=(3, 16)).astype(np.float32)
+        d1 = np.stack([d0[0], d0[1] + 0.3 * rng.normal(size=16), d0[2]]).astype(np.float32)
+        match = match_float
+    else:
+        d0 = rng.integers(0, 256, (3, 32), dtype=np.uint8)
+        d1 = d0.copy()
+        d1[1, :4] ^= 0xFF  # 32 bits off: still the best candidate of row 1
+        match = match_binary
+    p0 = np.array([[10.0, 10.0], [100.0, 100.0], [300.0, 50.0]])
+    # feature 0 moved 200 px (beyond the gate), 1 moved 5 px, 2 moved 40 px
+    p1 = np.array([[210.0, 10.0], [105.0, 100.0], [340.0, 50.0]])
+    free = match(d0, d1, ratio=None)
+    assert sorted(free.indices[:, 0].tolist()) == [0, 1, 2]
+    gated = match(d0, d1, ratio=None, positions0=p0, positions1=p1, max_distance_px=50.0)
+    assert sorted(map(tuple, gated.indices.tolist())) == [(1, 1), (2, 2)]
+    none = match(d0, d1, ratio=None, positions0=p0, positions1=p1, max_distance_px=1.0)
+    assert len(none) == 0
+    with pytest.raises(FeatureInputError, match='positions1'):
+        match(d0, d1, positions0=p0, positions1=p1[:2], max_distance_px=50.0)
+    with pytest.raises(MatchingConfigError, match='max_distance_px'):
+        match(d0, d1, positions0=p0, positions1=p1, max_distance_px=0.0)

@@ -382,3 +382,23 @@ def test_id_overflow_is_reported_and_leaves_a_clean_state() -> None:
         m.process(world.frame(1)[0])
     res = m.process(world.frame(2)[0])  # the matcher restarted cleanly
     assert res.reset == 'first frame' and res.n_tracks == 0
+
+
+def test_motion_gate_uses_the_image_width() -> None:
+    # the second frame is the first one shifted by 0.3 image widths: beyond the default gate
+    # (0.15 widths per frame step), so nothing continues; without the gate everything does
+    world = World(seed=5)
+    f0, _ = world.frame(0, clutter=0.0)
+    shifted = f0.keypoints + np.array([0.3 * CAM.width, 0.0])
+    f1 = replace(f0, stamp_ns=f0.stamp_ns + STEP_NS, keypoints=shifted,
+                 bearings=f0.bearings.copy())
+    gated = SequentialMatcher(camera=CAM)
+    gated.process(f0)
+    assert gated.process(f1).matches.shape[0] == 0
+    # the width comes from the frame when the matcher has no camera
+    no_cam = SequentialMatcher()
+    no_cam.process(replace(f0, image_width=CAM.width))
+    assert no_cam.process(replace(f1, image_width=CAM.width)).matches.shape[0] == 0
+    free = SequentialMatcher({'matching': {'max_displacement': 0.0}}, camera=CAM)
+    free.process(f0)
+    assert free.process(f1).matches.shape[0] > 0.9 * len(f0.keypoints)

@@ -150,8 +150,12 @@ _BLOCK_ROWS = 1024  # rows of the similarity matrix computed at once (bounded me
 
 
 def _nn_core(a: np.ndarray, b: np.ndarray, valid_min: float, mutual: bool,
+             gate: tuple[np.ndarray, np.ndarray, float] | None = None,
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Best and second-best columns per row of the similarity ``a @ b.T`` (higher is better).
+
+    ``gate = (pos0 (N0, 2), pos1 (N1, 2), radius)``: pairs farther apart than ``radius`` (px)
+    are excluded (as if their similarity were -inf), before the mutual and ratio checks.
 
     The matrix is computed in blocks of rows. Returns ``(rows, cols, best, second)`` for rows
     whose best entry is ``>= valid_min`` and that pass the mutual check (``sim[i, j]`` is the
@@ -166,6 +170,10 @@ def _nn_core(a: np.ndarray, b: np.ndarray, valid_min: float, mutual: bool,
     col_max = np.full(n1, -np.inf, dtype=a.dtype)
     for s in range(0, n0, _BLOCK_ROWS):
         sim = a[s:s + _BLOCK_ROWS] @ bt
+        if gate is not None:
+            p0, p1, radius = gate
+            d2 = ((p0[s:s + _BLOCK_ROWS, None, :] - p1[None, :, :]) ** 2).sum(axis=2)
+            sim[d2 > radius * radius] = -np.inf
         r = np.arange(sim.shape[0])
         j = np.argmax(sim, axis=1)
         nn01[s:s + sim.shape[0]] = j
@@ -178,6 +186,8 @@ def _nn_core(a: np.ndarray, b: np.ndarray, valid_min: float, mutual: bool,
     keep = best >= valid_min
     if mutual:
         keep &= best >= col_max[nn01]
+    if mutual:
+        keep &= np.isfinite(best)
     rows = np.flatnonzero(keep)
     cols, best, second = nn01[keep], best[keep], second[keep]
     if mutual and rows.size:
@@ -199,6 +209,26 @@ def _one_hot_blocks(l0: np.ndarray, l1: np.ndarray, compat: np.ndarray, bonus: f
     return a, b
 
 
+def _check_gate(positions0: np.ndarray | None, positions1: np.ndarray | None,
+                max_distance_px: float | None, n0: int, n1: int
+                ) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """Validated spatial gate for :func:`_nn_core` (None: no gate)."""
+    if max_distance_px is None:
+        return None
+    r = float(max_distance_px)
+    if not r > 0:
+        raise MatchingConfigError(f'max_distance_px: expected > 0 px or None, got {r}')
+    out = []
+    for name, pos, n in (('positions0', positions0, n0), ('positions1', positions1, n1)):
+        a = None if pos is None else np.asarray(pos, dtype=np.float32)
+        if a is None or a.shape != (n, 2) or not np.isfinite(a).all():
+            raise FeatureInputError(f'{name}: a spatial gate needs finite (N, 2) px positions '
+                                    f'of the {n} features, got '
+                                    f'{None if a is None else a.shape}')
+        out.append(a)
+    return out[0], out[1], r
+
+
 def normalize_descriptors(desc: np.ndarray, name: str = 'descriptors') -> np.ndarray:
     """(N, D) float32 rows scaled to unit L2 norm; all-zero rows stay zero (never matched)."""
     d = np.asarray(desc)
@@ -218,11 +248,14 @@ def normalize_descriptors(desc: np.ndarray, name: str = 'descriptors') -> np.nda
 def match_float(desc0: np.ndarray, desc1: np.ndarray, *, labels0: np.ndarray | None = None,
                 labels1: np.ndarray | None = None, compatibility: np.ndarray | None = None,
                 mutual: bool = True, ratio: float | None = 0.9, min_similarity: float = 0.5,
-                ) -> Matches:
+                positions0: np.ndarray | None = None, positions1: np.ndarray | None = None,
+                max_distance_px: float | None = None) -> Matches:
     """Match float descriptors (N0, D) and (N1, D) by cosine similarity (see the module doc).
 
     Descriptors are L2-normalised here. ``labels*`` are (N,) class ids, used only with a
-    ``compatibility`` matrix from :func:`semantic_compatibility`.
+    ``compatibility`` matrix from :func:`semantic_compatibility`. With ``max_distance_px``,
+    only pairs whose ``positions0`` / ``positions1`` (N, 2) px lie within that distance compete
+    (a motion bound between consecutive frames: fewer ambiguous candidates).
     """
     d0 = normalize_descriptors(desc0, 'desc0')
     d1 = normalize_descriptors(desc1, 'desc1')
@@ -254,7 +287,8 @@ def match_float(desc0: np.ndarray, desc1: np.ndarray, *, labels0: np.ndarray | N
         d0 = np.concatenate([d0, pen0], axis=1)
         d1 = np.concatenate([d1, pen1], axis=1)
     # Incompatible pairs score <= 1 < offset - 1 <= compatible pairs (float32 slack 1e-3).
-    rows, cols, best, second = _nn_core(d0, d1, offset - 1.0 - 1e-3, mutual)
+    gate = _check_gate(positions0, positions1, max_distance_px, d0.shape[0], d1.shape[0])
+    rows, cols, best, second = _nn_core(d0, d1, offset - 1.0 - 1e-3, mutual, gate)
     best = best - offset
     second = np.where(np.isfinite(second), second - offset, -np.inf)
     keep = best >= float(min_similarity) - 1e-6
@@ -278,7 +312,8 @@ def hamming_distances(desc0: np.ndarray, desc1: np.ndarray) -> np.ndarray:
 def match_binary(desc0: np.ndarray, desc1: np.ndarray, *, labels0: np.ndarray | None = None,
                  labels1: np.ndarray | None = None, compatibility: np.ndarray | None = None,
                  mutual: bool = True, ratio: float | None = 0.8, max_distance: float = 64,
-                 ) -> Matches:
+                 positions0: np.ndarray | None = None, positions1: np.ndarray | None = None,
+                 max_distance_px: float | None = None) -> Matches:
     """Match packed binary descriptors (N0, B) and (N1, B) uint8 by Hamming distance (bits).
 
     Same rules as :func:`match_float` (see the module doc) with ``max_distance`` in bits.
@@ -314,8 +349,10 @@ def match_binary(desc0: np.ndarray, desc1: np.ndarray, *, labels0: np.ndarray | 
         a, b = _one_hot_blocks(l0, l1, compat, offset, np.float32)
         cols0.append(a)
         cols1.append(b)
+    gate = _check_gate(positions0, positions1, max_distance_px, d0.shape[0], d1.shape[0])
     rows, cols, best, second = _nn_core(np.concatenate(cols0, axis=1),
-                                        np.concatenate(cols1, axis=1), offset - 0.5, mutual)
+                                        np.concatenate(cols1, axis=1), offset - 0.5, mutual,
+                                        gate)
     dist = n_bits - (best - offset)
     dist2 = np.where(np.isfinite(second), n_bits - (second - offset), np.inf)
     keep = dist <= float(max_distance) + 1e-3

@@ -60,6 +60,11 @@ default_conf: dict[str, Any] = {
         'max_hamming_distance': 64,
         # Keypoints with a lower detector score are neither matched nor tracked.
         'min_keypoint_score': 0.0,
+        # Largest image motion of a match per frame step, as a fraction of the image width
+        # (0.15: 96 px at 640, 288 px at 1920 wide); frames k steps apart allow k times this.
+        # Candidates farther apart never compete, so weak descriptors find their match among
+        # a few neighbours instead of the whole image. 0 disables the gate.
+        'max_displacement': 0.15,
     },
     'semantic': {
         # Match only keypoints with compatible labels (same class or same group below).
@@ -94,6 +99,7 @@ def _check_conf(conf: Mapping[str, Any]) -> None:
     check_range(m, 'min_similarity', -1.0, 1.0, 'matching')
     check_range(m, 'max_hamming_distance', 0, None, 'matching')
     check_range(m, 'min_keypoint_score', None, None, 'matching')
+    check_range(m, 'max_displacement', 0.0, None, 'matching')
     s = conf['semantic']
     groups = s['compatible_groups']
     if not isinstance(groups, list | tuple) or not all(
@@ -124,6 +130,9 @@ class FrameFeatures:
     """(N, 3) unit bearings in the optical frame; None: computed from the matcher's camera."""
     camera_id: str = ''
     """Identifies the camera/calibration; a change restarts tracking."""
+    image_width: int = 0
+    """Width of the image (px), for the ``max_displacement`` gate; 0: the matcher's camera
+    width, and no gate without a camera either."""
 
 
 @dataclass
@@ -280,6 +289,7 @@ class SequentialMatcher:
         self._last_stamp: int | None = None
         self._camera_id: str | None = None
         self._desc_sig: tuple[str, int] | None = None
+        self._image_width = 0
 
     # -----------------------------------------------------------------------------------------
 
@@ -354,6 +364,10 @@ class SequentialMatcher:
         if self.compatibility is not None:
             kw = dict(labels0=f0.labels[rows], labels1=f1.labels[cols],
                       compatibility=self.compatibility)
+        if m['max_displacement'] > 0 and self._image_width:
+            steps = max(1, f1.seq - f0.seq)
+            kw.update(positions0=f0.keypoints[rows], positions1=f1.keypoints[cols],
+                      max_distance_px=m['max_displacement'] * self._image_width * steps)
         if m['descriptor_type'] == 'binary':
             res = match_binary(f0.descriptors[rows], f1.descriptors[cols],
                                mutual=m['mutual_check'], ratio=m['ratio_threshold'],
@@ -399,6 +413,8 @@ class SequentialMatcher:
         self._last_stamp = int(frame.stamp_ns)
         self._camera_id = frame.camera_id
         self._desc_sig = sig
+        self._image_width = int(frame.image_width) or (
+            int(self.camera.width) if self.camera is not None else 0)
 
         try:
             return self._step(frame, kp, desc, labels, scores, bear, reason, ended, t_start)

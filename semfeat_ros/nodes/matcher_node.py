@@ -62,6 +62,9 @@ class MatcherNodeConfig:
                                    range=(0.0, 1.0), read_only=True)
     min_similarity: float = param(0.5, 'Minimum cosine similarity of a match',
                                   range=(-1.0, 1.0), read_only=True)
+    max_displacement: float = param(
+        0.15, 'Largest image motion of a match per frame, as a fraction of the image width '
+        '(0 disables the gate)', range=(0.0, 2.0), read_only=True)
     semantic: bool = param(True, 'Match only keypoints of compatible classes', read_only=True)
     threshold_rad: float = param(0.01, 'RANSAC inlier threshold: angle between a bearing and '
                                  'its epipolar plane (rad)', range=(1e-4, 0.2), read_only=True)
@@ -82,7 +85,8 @@ class MatcherNodeConfig:
 def matcher_conf(c: MatcherNodeConfig) -> dict[str, Any]:
     """The SequentialMatcher conf for the node parameters."""
     return {
-        'matching': {'ratio_threshold': c.ratio_threshold, 'min_similarity': c.min_similarity},
+        'matching': {'ratio_threshold': c.ratio_threshold, 'min_similarity': c.min_similarity,
+                     'max_displacement': c.max_displacement},
         'semantic': {'enabled': c.semantic},
         'verification': {'threshold_rad': c.threshold_rad, 'min_inliers': c.min_inliers,
                          'seed': c.seed},
