@@ -368,3 +368,16 @@ def test_invalid_frames_raise_clear_errors(camera_only: Run) -> None:
     m.reset()
     assert m.state == 'initializing' and len(m.trajectory()[0]) == 0 and len(m.cloud()) == 0
     assert m.update(g.tracks).state == 'initializing'  # stamps may restart after a reset
+
+
+def test_keyframe_rotations_from_far_tracks_bound_heading_drift() -> None:
+    # landmarks only within 2 m (as when most tracks lie far away) and a drifting odometry yaw:
+    # without the two-view rotation factors the heading drifts; with them it stays put
+    conf = DriveConfig(seed=3, odometry=True, odom_sigma_yaw=0.01)
+    ates = {}
+    for sigma in (0.0, 0.1):
+        run = drive_through(conf, mapper_conf={'vision_rotation_sigma_deg': sigma,
+                                               'lm_max_depth_m': 2.0})
+        assert (run.mapper.stats['rotation_factors'] > 0) == (sigma > 0)
+        ates[sigma] = ate_rmse(*run.trajectory(), align=True)
+    assert ates[0.1] < 0.15 and ates[0.1] < 0.5 * ates[0.0], ates

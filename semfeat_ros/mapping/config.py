@@ -42,6 +42,10 @@ default_conf: dict[str, Any] = {
     'init_odom_min_inlier_ratio': 0.3,  # with odometry: fraction of tracks that must be inliers
     'init_max_frames': 40,  # frames without success before the reference view is replaced
     'init_require_metric': True,  # camera-only: retry until the ground plane gives the scale
+    # ---- visual rotation between keyframes --------------------------------------------------
+    'vision_rotation_sigma_deg': 0.1,  # sigma of the keyframe-to-keyframe rotation from the
+    #                                    5-point geometry of common tracks (deg; 0 disables)
+    'vision_rotation_min_tracks': 20,  # common tracks (and inliers) needed for it
     # ---- landmarks ----------------------------------------------------------------------------
     'lm_min_keyframes': 3,  # keyframes that must see a track before it becomes a landmark
     'lm_min_parallax_deg': 2.0,  # largest angle between its rays (deg)
@@ -75,7 +79,7 @@ default_conf: dict[str, Any] = {
     'gnss_max_age_s': 1.0,  # a fix is attached to a keyframe at most this long after it (s)
     'gnss_lever_arm_m': [0.0, 0.0, 0.0],  # antenna position in base_link (m)
     'gnss_align_min_fixes': 10,  # fixes needed before the map is aligned to ENU
-    'gnss_align_min_span_m': 15.0,  # horizontal extent those fixes must cover (m): over 5 m
+    'gnss_align_min_span_m': 20.0,  # horizontal extent those fixes must cover (m): over 5 m
     #                                the yaw from fixes with ~0.1 m noise is off by degrees,
     #                                which moves the marginalised map by decimetres (tested)
     'gnss_align_max_rms_m': 1.5,  # alignment residual above which it is retried later (m)
@@ -131,7 +135,8 @@ _POSITIVE = (
     'floor_merge_m', 'floor_point_margin_m', 'cloud_min_parallax_deg',
 )
 _INT_MIN = {
-    'min_tracking_inliers': 4, 'init_min_tracks': 8, 'init_max_frames': 1,
+    'min_tracking_inliers': 4, 'init_min_tracks': 8, 'vision_rotation_min_tracks': 8,
+    'init_max_frames': 1,
     'lm_min_keyframes': 2, 'ground_max_per_keyframe': 0, 'max_obs_per_keyframe': 10,
     'max_new_landmarks': 1, 'ground_min_points': 3, 'gnss_align_min_fixes': 2,
     'gnss_max_rejects': 1, 'relinearize_skip': 1, 'marginalize_every': 1, 'extra_iterations': 0,
@@ -164,6 +169,9 @@ def merge_conf(conf: dict[str, Any] | None = None) -> dict[str, Any]:
         v = out[key]
         if isinstance(v, bool) or not isinstance(v, int | float) or not 0.0 <= v <= 1.0:
             raise MapperConfigError(f'{key} must be in [0, 1], got {v!r}')
+    v = out['vision_rotation_sigma_deg']
+    if isinstance(v, bool) or not isinstance(v, int | float) or not v >= 0:
+        raise MapperConfigError(f'vision_rotation_sigma_deg must be >= 0 (deg), got {v!r}')
     if not out['kf_min_distance_m'] >= 0:
         raise MapperConfigError(
             f'kf_min_distance_m must be >= 0, got {out["kf_min_distance_m"]!r}')

@@ -46,6 +46,17 @@ def between(k1: int, k2: int, T_12: np.ndarray, cov: np.ndarray) -> gtsam.Nonlin
                                     gtsam.noiseModel.Gaussian.Covariance(cov))
 
 
+def rotation_between(k1: int, k2: int, T_12: np.ndarray, sigma_rad: float,
+                     free_sigma_m: float, kernel: str, k: float) -> gtsam.NonlinearFactor:
+    """Relative rotation of pose k2 in pose k1 (two-view geometry of the tracks), as a Pose3
+    between factor whose translation part is left free (``free_sigma_m``, m), Huber/Cauchy
+    robust. ``T_12`` (4, 4): the measured rotation and any translation (it carries no weight).
+    """
+    sig = np.array([sigma_rad] * 3 + [free_sigma_m] * 3, dtype=float)
+    noise = robust(gtsam.noiseModel.Diagonal.Sigmas(sig), kernel, k)
+    return gtsam.BetweenFactorPose3(k1, k2, gtsam.Pose3(np.asarray(T_12, float)), noise)
+
+
 def gnss_factor(key: int, position: np.ndarray, cov: np.ndarray, lever_arm_cam: np.ndarray,
                 k: float) -> gtsam.NonlinearFactor:
     """Antenna position (m, map) of camera pose ``key``; the antenna sits at ``lever_arm_cam``

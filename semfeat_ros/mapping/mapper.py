@@ -234,7 +234,7 @@ class Mapper:
             frames=0, keyframes=0, landmarks=0, update_failures=0, recoveries=0,
             outlier_factors=0, landmarks_killed=0, gnss_accepted=0, gnss_rejected=0,
             tracking_lost=0, initialisations=0, rejected_rows=0,
-            obs_beyond_90deg=0)
+            obs_beyond_90deg=0, rotation_factors=0)
 
     @property
     def state(self) -> str:
@@ -792,6 +792,8 @@ class Mapper:
         self._kf_odom = _OdomChain(self.conf['use_odometry'])
         for i in np.flatnonzero(mappable).tolist():
             self._tracks[int(frame.track_id[i])].kf_obs[kid] = (frame.bearing[i], frame.pixel[i])
+        if prev in self._kfs:
+            self._add_rotation_rec(frame, mappable, prev, kid, recs)
         seen: list[int] = []
         seen_rows: list[int] = []
         for tid, i in lm_obs:
@@ -813,6 +815,34 @@ class Mapper:
         self._add_ground_recs(kid, seen + new_lids, recs)
         self._attach_gnss(kid, fix, recs)
         self._commit(recs, values, ts, seen + new_lids, kid, events)
+
+    def _add_rotation_rec(self, frame: Tracks, mappable: np.ndarray, ka: int, kb: int,
+                          recs: list[_Rec]) -> None:
+        """Relative rotation between keyframes ka and kb from the two-view geometry of their
+        common tracks (5-point RANSAC on bearings). Far points, which never become landmarks,
+        fix the rotation well: this bounds the heading drift between landmark observations."""
+        c = self.conf
+        if c['vision_rotation_sigma_deg'] <= 0:
+            return
+        b_a, b_b = [], []
+        for i in np.flatnonzero(mappable).tolist():
+            obs = self._tracks[int(frame.track_id[i])].kf_obs
+            if ka in obs:
+                b_a.append(obs[ka][0])
+                b_b.append(frame.bearing[i])
+        if len(b_a) < c['vision_rotation_min_tracks']:
+            return
+        ver = verify_bearings(np.array(b_a), np.array(b_b), {
+            'threshold_rad': c['init_ransac_px'] / self.camera.fx, 'seed': c['seed'],
+            'min_inliers': c['vision_rotation_min_tracks']})
+        if not ver.ok:
+            return
+        T_ab = se3_inv(self._kf_T_wc[ka]) @ self._kf_T_wc[kb]
+        T_ab[:3, :3] = ver.R.T  # X_b = R X_a + t: the rotation of b in a is R^T
+        f = fac.rotation_between(X(ka), X(kb), T_ab, np.radians(c['vision_rotation_sigma_deg']),
+                                 100.0, c['robust_kernel'], c['robust_k'])
+        recs.append(self._rec(f, 'vrot', kb))
+        self.stats['rotation_factors'] += 1
 
     def _observed(self, lm: _Landmark, kid: int, bearing: np.ndarray) -> None:
         """Bookkeeping of a new observation: count and observing keyframe."""
