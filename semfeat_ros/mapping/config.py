@@ -30,6 +30,8 @@ default_conf: dict[str, Any] = {
     'kf_max_distance_m': 1.0,  # ... or the base moved farther than this (m, when metric) ...
     'kf_min_distance_m': 0.05,  # ... but never while the base moved less than this (m)
     # ---- two-view initialisation ------------------------------------------------------------
+    'init_from_odometry': True,  # with wheel odometry: start at the first frame, keyframes
+    #                              placed by odometry until landmarks exist (no two-view step)
     'init_min_tracks': 40,  # common static tracks needed between the two views
     'init_min_parallax_deg': 3.0,  # try once init_min_tracks / 2 common tracks have a bearing
     #                                angle between the views above this (deg)
@@ -187,7 +189,8 @@ def merge_conf(conf: dict[str, Any] | None = None) -> dict[str, Any]:
             and all(isinstance(n, str) for n in out['ground_labels'])):
         raise MapperConfigError(
             f'ground_labels must be a list of class names, got {out["ground_labels"]!r}')
-    for key in ('use_odometry', 'use_gnss', 'init_require_metric', 'keep_full_graph'):
+    for key in ('use_odometry', 'use_gnss', 'init_require_metric', 'keep_full_graph',
+                'init_from_odometry'):
         if not isinstance(out[key], bool):
             raise MapperConfigError(f'{key} must be true or false, got {out[key]!r}')
     if out['lm_max_depth_m'] <= out['lm_min_depth_m']:

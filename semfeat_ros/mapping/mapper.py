@@ -284,7 +284,10 @@ class Mapper:
             fix = self._check_fix(gnss, self._predict(frame.stamp_ns, odometry), events)
         keyframe = False
         T_wc, cov_c, n_inl = None, None, 0
-        if self._state in ('initializing', 'lost'):
+        if (self._state == 'initializing' and odometry is not None
+                and self.conf['init_from_odometry']):
+            T_wc, keyframe = self._start_from_odometry(frame, mappable, fix, events)
+        elif self._state in ('initializing', 'lost'):
             T_wc, keyframe = self._initialize(frame, mappable, fix, events)
             if T_wc is None and self._state == 'lost':
                 T_wc = self._predict(frame.stamp_ns, odometry)
@@ -594,6 +597,31 @@ class Mapper:
             stamp=frame.stamp_ns, frames=0,
             obs={int(frame.track_id[i]): (frame.bearing[i], frame.pixel[i]) for i in idx})
         self._ref_odom = _OdomChain(self.conf['use_odometry'])
+
+    def _start_from_odometry(self, frame: Tracks, mappable: np.ndarray, fix: GnssFix | None,
+                             events: list[str]) -> tuple[np.ndarray, bool]:
+        """With wheel odometry the map starts at once: a first keyframe at the origin (metric
+        from the start), the next ones placed by odometry until triangulated landmarks take
+        over (state 'odometry_only' -> 'tracking'). No two-view initialisation is needed, so
+        a front end whose tracks are mostly far (little parallax) still builds a map."""
+        T_wc = self.T_bc.copy()
+        kid = self._new_keyframe(frame.stamp_ns, T_wc, int(mappable.sum()))
+        recs = [self._rec(fac.pose_prior(X(kid), T_wc, self._prior_cov()), 'prior', kid)]
+        values = gtsam.Values()
+        values.insert(X(kid), gtsam.Pose3(T_wc))
+        ts = {X(kid): self._ts(kid)}
+        for i in np.flatnonzero(mappable).tolist():
+            self._tracks[int(frame.track_id[i])].kf_obs[kid] = (frame.bearing[i], frame.pixel[i])
+        self._attach_gnss(kid, fix, recs)
+        self._state = 'odometry_only'
+        self._metric = self._scale_from_odometry = True
+        self._ref = self._link = None
+        self.stats['initialisations'] += 1
+        self._kf_odom = _OdomChain(True)
+        self._history = [(frame.stamp_ns, T_wc)]
+        self._commit(recs, values, ts, [], kid, events)
+        events.append('initialised_from_odometry')
+        return T_wc, True
 
     def _initialize(self, frame: Tracks, mappable: np.ndarray, fix: GnssFix | None,
                     events: list[str]) -> tuple[np.ndarray | None, bool]:
