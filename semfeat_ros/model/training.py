@@ -512,6 +512,25 @@ def main(conf: dict[str, Any], out: Path, *, resume: bool = False, export: Path 
     return summary
 
 
+MIOU_STATIC_TARGET = 0.70
+"""Project target (issue 4): segmentation mIoU over the static classes on held-out seeds."""
+
+
+def targets_table(v: dict[str, Any]) -> str:
+    """Markdown table of the validation numbers against the project's targets (never edited
+    by hand: a card says 'not met' until a run meets them)."""
+    miou = v.get('val_miou_static')
+    met = miou is not None and np.isfinite(miou) and miou >= MIOU_STATIC_TARGET
+    rows = ['| target | this run | met |', '|---|---|---|',
+            f'| static-class mIoU >= {MIOU_STATIC_TARGET:.2f} (held-out seeds) | '
+            f'{"n/a" if miou is None else f"{miou:.3f}"} | {"yes" if met else "no"} |',
+            '| descriptor precision above SIFT on the same pairs | measured by `semfeat-eval '
+            'sequence` (docs/RESULTS.md) | see there |',
+            '| forward <= 60 ms at 640x512, extract() <= 90 ms at 1920x1536 | measured by '
+            '`semfeat-bench` (docs/BENCHMARKS.md) | see there |']
+    return '\n'.join(rows)
+
+
 def model_card(model: SemFeatNet, meta: dict[str, Any], conf: dict[str, Any],
                out: Path) -> str:
     """MODEL_CARD.md text for exported weights, filled from the actual run."""
@@ -588,6 +607,10 @@ Rebuild: `semfeat-train --config config/train.yaml --out {out} --export semfeat_
 | NMS peaks per frame with score > 0.01 / 0.05 / 0.2 | {peaks} |
 
 Training curves: `training_losses.png`, `training_metrics.png`.
+
+## Against the project's targets
+
+{targets_table(v)}
 
 ## Limitations
 
