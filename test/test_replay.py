@@ -12,7 +12,10 @@ from conftest import REPO
 import numpy as np
 import pytest
 
+from msg_adapters import pose_stamped_to_numpy
+from semfeat_ros.labels import load_labels
 from semfeat_ros.offline.bag import BagSource
+from semfeat_ros.offline.metrics import evaluate_trajectory
 from semfeat_ros.tools.demo import DemoConfig, run_pipeline
 from semfeat_ros.tools.demo_report import _read_outputs
 
@@ -22,6 +25,20 @@ from bagcraft import craft  # noqa: E402
 BAG = REPO / 'bags' / 'garage_ramp_seed0'
 pytestmark = pytest.mark.slow
 
+# Bounds against what the live pipeline measured on the shipped weights (docs/RESULTS.md: the
+# demo's /semfeat/odometry ATE was 0.26-0.28 m over three runs, under the load of five
+# processes on 2 cores).
+ATE_SIM3_MAX_M = 0.5
+
+
+def _ground_truth(bag: Path) -> dict[str, np.ndarray]:
+    stamps, poses = [], []
+    with BagSource(bag) as src:
+        for m in src.messages(['/ground_truth/pose']):
+            s, _, T = pose_stamped_to_numpy(m.msg)
+            stamps.append(s)
+            poses.append(T)
+    return {'stamps': np.array(stamps), 'poses': np.array(poses)}
 
 
 def _track_stamps(bag: Path) -> np.ndarray:
@@ -53,6 +70,24 @@ def test_clean_replay_diagnostics(live: dict) -> None:
     counts = live['outputs']['counts']
     assert counts.get('/semfeat/tracks', 0) >= processed - 2  # every processed frame tracked
     assert int(diag['matcher_node']['frames_processed']) >= processed - 2
+
+
+def test_odometry_against_ground_truth(live: dict) -> None:
+    gt = _ground_truth(BAG)
+    o = live['outputs']
+    assert len(o['stamps']) >= 30
+    ev = evaluate_trajectory(o['stamps'], o['poses'], gt['stamps'], gt['poses'], metric=True)
+    assert ev.metrics['ate_sim3_rmse_m'] < ATE_SIM3_MAX_M, ev.metrics
+
+
+def test_semantic_cloud_contract(live: dict) -> None:
+    # (points near the rendered surfaces, and >= 2 floors, are not asserted: with the v1
+    # network the live cloud is a few dozen points, mostly far and inaccurate; docs/RESULTS.md)
+    cloud = live['outputs']['cloud']
+    assert cloud is not None and len(cloud.xyz) >= 5
+    labels = load_labels()
+    assert labels.static[cloud.labels].all()  # never sky, cars or pedestrians
+    assert np.isfinite(cloud.xyz).all() and (cloud.n_obs >= 3).all()
 
 
 @pytest.mark.parametrize('domain', [98])
