@@ -25,10 +25,12 @@ from bagcraft import craft  # noqa: E402
 BAG = REPO / 'bags' / 'garage_ramp_seed0'
 pytestmark = pytest.mark.slow
 
-# Bounds against what the live pipeline measured on the shipped weights (docs/RESULTS.md: the
-# demo's /semfeat/odometry ATE was 0.26-0.28 m over three runs, under the load of five
-# processes on 2 cores).
-ATE_SIM3_MAX_M = 0.5
+# Bounds against what the live pipeline measured on the shipped weights: the /semfeat/odometry
+# ATE was 0.26-0.50 m over five runs (offline, every frame: 0.38 m); the spread comes from the
+# frames the nodes drop under the load of five processes on 2 cores (more with other jobs).
+ATE_SIM3_MAX_M = 0.8
+AGREEMENT_MAX_M = 0.8  # live vs offline trajectory, RMSE after Sim(3) alignment
+ATE_DIFFERENCE_MAX_M = 0.4  # |ATE live - ATE offline|
 
 
 def _ground_truth(bag: Path) -> dict[str, np.ndarray]:
@@ -88,6 +90,28 @@ def test_semantic_cloud_contract(live: dict) -> None:
     labels = load_labels()
     assert labels.static[cloud.labels].all()  # never sky, cars or pedestrians
     assert np.isfinite(cloud.xyz).all() and (cloud.n_obs >= 3).all()
+
+
+def test_offline_map_agrees_with_live(live: dict) -> None:
+    """``semfeat-map``'s core on the same bag (every frame, no DDS) against the live run (the
+    frames the nodes kept): the two trajectories agree within AGREEMENT_MAX_M RMSE after
+    alignment, and their errors against the ground truth within ATE_DIFFERENCE_MAX_M."""
+    from semfeat_ros.camera import load_camera_yaml
+    from semfeat_ros.offline.mapping_run import MapConfig, run_mapping
+
+    _, ext = load_camera_yaml()
+    with BagSource(BAG) as src:
+        run = run_mapping(src, MapConfig(T_base_cam=ext.T_base_cam), progress=False)
+    off_stamps, off_poses = run.mapper.trajectory()
+    o = live['outputs']
+    agree = evaluate_trajectory(o['stamps'], o['poses'], off_stamps, off_poses, metric=True)
+    assert agree.metrics['ate_sim3_rmse_m'] < AGREEMENT_MAX_M, agree.metrics
+    gt = _ground_truth(BAG)
+    ate_live = evaluate_trajectory(o['stamps'], o['poses'], gt['stamps'], gt['poses'],
+                                   metric=True).metrics['ate_sim3_rmse_m']
+    ate_off = evaluate_trajectory(off_stamps, off_poses, gt['stamps'], gt['poses'],
+                                  metric=True).metrics['ate_sim3_rmse_m']
+    assert abs(ate_live - ate_off) < ATE_DIFFERENCE_MAX_M, (ate_live, ate_off)
 
 
 @pytest.mark.parametrize('domain', [98])
