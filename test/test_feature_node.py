@@ -133,7 +133,10 @@ def test_outputs_and_stamps(ros_context, untrained_weights: Path) -> None:
             assert (feats.keypoints <= np.array([W - 1, H - 1])).all()
             assert not np.isin(feats.labels, [16, 17, 18]).any()  # sky and dynamic dropped
         mask = image_to_numpy(h.masks[-1])
-        assert mask.shape == (H, W) and mask.max() < 19
+        assert mask.shape == (H, W)
+        # class ids inside the image circle, 255 ('no class') outside it
+        assert set(np.unique(mask).tolist()) <= set(range(19)) | {255}
+        assert mask[0, 0] == 255 and mask[H // 2, W // 2] < 19
         assert h.node.health.counters.rejected == 0
     finally:
         h.close()

@@ -152,3 +152,17 @@ def test_garbage_frames_and_time_jump(tmp_path: Path, domain: int) -> None:
     jump = int(np.argmin(np.diff(stamps))) + 1
     assert np.diff(stamps).min() < 0 and len(stamps) - jump >= 5, stamps
 
+
+
+@pytest.mark.parametrize('domain', [94])
+def test_node_rate_benchmark_smoke(tmp_path: Path, domain: int) -> None:
+    from semfeat_ros.tools.node_rate import NodeRateConfig, cli, measure, summary
+
+    bag = tmp_path / 'cut'
+    craft(BAG, bag, seconds=3.0)
+    res = measure(NodeRateConfig(bag=bag, out=tmp_path / 'nr', domain_id=domain))
+    f = res['diagnostics']['feature_node']
+    assert int(f['frames_processed']) > 0 and int(f['errors_rejected']) == 0
+    assert res['feature_node_hz'] > 0 and all(c == 0 for c in res['exit_codes'].values())
+    assert 'feature_node processed' in summary(res)
+    assert cli(['--bag', str(tmp_path / 'missing')]) == 2

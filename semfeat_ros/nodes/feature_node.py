@@ -13,7 +13,7 @@ import sys
 import threading
 from typing import Any
 
-from rclpy.executors import MultiThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
@@ -180,7 +180,7 @@ class FeatureNode(Node):
 
 
 def main(args: list[str] | None = None) -> None:
-    spin_node('feature_node', FeatureNode, lambda: MultiThreadedExecutor(num_threads=2), args)
+    spin_node('feature_node', FeatureNode, SingleThreadedExecutor, args)
 
 
 if __name__ == '__main__':
