@@ -36,6 +36,7 @@ class FrontendConfig:
     drop_classes: tuple[str, ...] = ('sky', 'car', 'pedestrian')  # keypoints never returned
     mask_resolution: str = 'input'  # 'seg' (1/4 network), 'network' or 'input'
     resize_max: int = 640  # px, longer side of the network input
+    bf16: bool = False  # bfloat16 autocast of the network (FeatureExtractor conf 'bf16')
     size_tolerance: float = 0.01  # relative aspect mismatch tolerated between image and camera
 
 
@@ -71,7 +72,8 @@ class SemanticFrontend:
             'max_keypoints': conf.max_keypoints, 'detection_threshold': conf.score_threshold,
             'nms_radius': conf.nms_radius, 'remove_borders': conf.border,
             'drop_classes': list(conf.drop_classes), 'num_threads': conf.num_threads,
-            'mask_resolution': conf.mask_resolution, 'resize_max': conf.resize_max})
+            'mask_resolution': conf.mask_resolution, 'resize_max': conf.resize_max,
+            'bf16': conf.bf16})
         self.last_count = 0
         self._scaled: dict[tuple, CameraModel] = {}
 

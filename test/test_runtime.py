@@ -86,3 +86,14 @@ def test_stamp_guard() -> None:
     guard = StampGuard()
     assert [guard.check(s) for s in (10, 20, 20, 5, 6)] == [
         'ok', 'ok', 'duplicate', 'backwards', 'ok']
+
+
+def test_cpu_has_bf16_reads_the_flags(tmp_path) -> None:
+    from semfeat_ros.runtime import cpu_has_bf16
+
+    info = tmp_path / 'cpuinfo'
+    info.write_text('processor\t: 0\nflags\t\t: fpu sse2 avx2 avx512f avx512_bf16\n')
+    assert cpu_has_bf16(info)
+    info.write_text('processor\t: 0\nflags\t\t: fpu sse2 avx2 avx512f\n')
+    assert not cpu_has_bf16(info)
+    assert not cpu_has_bf16(tmp_path / 'missing')

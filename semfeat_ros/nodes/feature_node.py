@@ -26,7 +26,7 @@ from semfeat_ros.frontend import FrontendConfig, FrontendError, SemanticFrontend
 from semfeat_ros.labels import load_labels
 from semfeat_ros.nodes.diagnostics import NodeHealth, spin_node, wall_time
 from semfeat_ros.nodes.params import declare_config, guard_updates, param
-from semfeat_ros.runtime import LatestWorker
+from semfeat_ros.runtime import LatestWorker, cpu_has_bf16
 
 
 @dataclass
@@ -70,6 +70,9 @@ class FeatureNodeConfig:
     mask_resolution: str = param('input', 'Size of the published mask: input image, network '
                                  'input, or the 1/4-resolution segmentation grid',
                                  choices=('input', 'network', 'seg'), read_only=True)
+    bf16: str = param('auto', 'bfloat16 autocast of the network: auto (on when the CPU has '
+                      'BF16 units: avx512_bf16 / amx_bf16), on, off',
+                      choices=('auto', 'on', 'off'), read_only=True)
     max_image_pixels: int = param(50_000_000, 'Frames with more pixels are rejected',
                                   range=(1, 500_000_000), read_only=True)
     diagnostics_period_s: float = param(1.0, 'Period of /diagnostics (s)', range=(0.1, 60.0),
@@ -83,7 +86,8 @@ def frontend_config(c: FeatureNodeConfig, weights: str | None = None) -> Fronten
         weights=weights or c.weights or None, num_threads=c.num_threads,
         max_keypoints=c.max_keypoints, score_threshold=c.score_threshold,
         nms_radius=c.nms_radius, border=c.border, drop_classes=tuple(c.drop_classes),
-        mask_resolution=c.mask_resolution, resize_max=c.resize_max)
+        mask_resolution=c.mask_resolution, resize_max=c.resize_max,
+        bf16=cpu_has_bf16() if c.bf16 == 'auto' else c.bf16 == 'on')
 
 
 class FeatureNode(Node):
