@@ -13,6 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from semfeat_ros.matching.geometry import epipolar_sines
+
 _EPS = 1e-12
 
 
@@ -281,16 +283,6 @@ def refine_pose_bearings(T_w_c: np.ndarray, points_w: np.ndarray, bearings: np.n
 # ------------------------------------------------------------------------------------------------
 
 
-def epipolar_error(E: np.ndarray, b1: np.ndarray, b2: np.ndarray) -> np.ndarray:
-    """Angular distance (rad, small angle) of bearings to their epipolar planes (larger side)."""
-    Eb1 = b1 @ E.T
-    Etb2 = b2 @ E
-    num = np.abs(np.sum(b2 * Eb1, axis=1))
-    e2 = num / np.maximum(np.linalg.norm(Eb1, axis=1), _EPS)
-    e1 = num / np.maximum(np.linalg.norm(Etb2, axis=1), _EPS)
-    return np.maximum(e1, e2)
-
-
 @dataclass(frozen=True)
 class RelativePose:
     """Two-view result: ``x2 = R x1 + t`` (unit ``t``) and the inlier correspondences."""
@@ -330,7 +322,7 @@ def relative_pose_known_motion(R: np.ndarray, t: np.ndarray, b1: np.ndarray, b2:
     t = t / norm
     b1 = unit(np.asarray(b1, dtype=np.float64))
     b2 = unit(np.asarray(b2, dtype=np.float64))
-    epi = epipolar_error(skew(t) @ R, b1, b2) < threshold
+    epi = epipolar_sines(skew(t) @ R, b1, b2) < threshold  # sine ~ angle at these sizes
     good, pts = _cheirality(R, t, b1, b2)
     return RelativePose(np.asarray(R, dtype=np.float64), t, epi & good, pts)
 
