@@ -610,18 +610,29 @@ class Mapper:
         values = gtsam.Values()
         values.insert(X(kid), gtsam.Pose3(T_wc))
         ts = {X(kid): self._ts(kid)}
+        self._observe_keyframe(frame, mappable, kid)
+        self._attach_gnss(kid, fix, recs)
+        self._metric = self._scale_from_odometry = True
+        self._start_segment('odometry_only', [(frame.stamp_ns, T_wc)], recs, values, ts, [],
+                            kid, events, 'initialised_from_odometry')
+        return T_wc, True
+
+    def _observe_keyframe(self, frame: Tracks, mappable: np.ndarray, kid: int) -> None:
+        """Keyframe ``kid`` observes every mappable track of ``frame`` (bearing, pixel)."""
         for i in np.flatnonzero(mappable).tolist():
             self._tracks[int(frame.track_id[i])].kf_obs[kid] = (frame.bearing[i], frame.pixel[i])
-        self._attach_gnss(kid, fix, recs)
-        self._state = 'odometry_only'
-        self._metric = self._scale_from_odometry = True
+
+    def _start_segment(self, state: str, history: list[tuple[int, np.ndarray]],
+                       recs: list[_Rec], values: gtsam.Values, ts: dict[int, float],
+                       lids: list[int], kid: int, events: list[str], event: str) -> None:
+        """Common end of both starts (from odometry, two-view): state, bookkeeping, commit."""
+        self._state = state
         self._ref = self._link = None
         self.stats['initialisations'] += 1
-        self._kf_odom = _OdomChain(True)
-        self._history = [(frame.stamp_ns, T_wc)]
-        self._commit(recs, values, ts, [], kid, events)
-        events.append('initialised_from_odometry')
-        return T_wc, True
+        self._kf_odom = _OdomChain(self.conf['use_odometry'])
+        self._history = history
+        self._commit(recs, values, ts, lids, kid, events)
+        events.append(event)
 
     def _initialize(self, frame: Tracks, mappable: np.ndarray, fix: GnssFix | None,
                     events: list[str]) -> tuple[np.ndarray | None, bool]:
@@ -752,8 +763,7 @@ class Mapper:
         for t in ids:  # keyframe observations of every common mappable track
             tr = self._tracks[t]
             tr.kf_obs[ka] = ref['obs'][t]
-        for i in np.flatnonzero(mappable).tolist():
-            self._tracks[int(frame.track_id[i])].kf_obs[kb] = (frame.bearing[i], frame.pixel[i])
+        self._observe_keyframe(frame, mappable, kb)
         new_lids = []
         R1, t1 = T_wc1[:3, :3], T_wc1[:3, 3]
         for t, p in zip(np.array(ids)[good], pts_c1):
@@ -763,14 +773,8 @@ class Mapper:
         for kid in (ka, kb):
             self._add_ground_recs(kid, new_lids, recs)
         self._attach_gnss(kb, fix, recs)
-        self._state = 'tracking'
-        self._link = None
-        self._ref = None
-        self.stats['initialisations'] += 1
-        self._kf_odom = _OdomChain(self.conf['use_odometry'])
-        self._history = [(ref['stamp'], T_wc1), (frame.stamp_ns, T_wc2)]
-        self._commit(recs, values, ts, new_lids, kb, events)
-        events.append('initialised')
+        self._start_segment('tracking', [(ref['stamp'], T_wc1), (frame.stamp_ns, T_wc2)], recs,
+                            values, ts, new_lids, kb, events, 'initialised')
 
     # ------------------------------------------------------------------------------------------
     # keyframes
@@ -818,8 +822,7 @@ class Mapper:
         if self._kf_odom.ok and prev in self._kfs:
             self._add_odom_rec(prev, kid, self._kf_odom, recs)
         self._kf_odom = _OdomChain(self.conf['use_odometry'])
-        for i in np.flatnonzero(mappable).tolist():
-            self._tracks[int(frame.track_id[i])].kf_obs[kid] = (frame.bearing[i], frame.pixel[i])
+        self._observe_keyframe(frame, mappable, kid)
         if prev in self._kfs:
             self._add_rotation_rec(frame, mappable, prev, kid, recs)
         seen: list[int] = []
