@@ -18,6 +18,7 @@ All coordinates are (u, v) px with the origin at the centre of the top-left pixe
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 import copy
 from dataclasses import dataclass
 from pathlib import Path
@@ -176,7 +177,7 @@ class FeatureExtractor:
         if conf['channels_last']:
             model = model.to(memory_format=torch.channels_last)
         self.model = model
-        self._mask_cache: dict[tuple, torch.Tensor] = {}
+        self._mask_cache: dict[tuple, Any] = {}
 
     def _check_conf(self) -> None:
         c = self.conf
@@ -226,13 +227,8 @@ class FeatureExtractor:
             if (camera.width, camera.height) != image_size:
                 raise ModelInputError(f'camera: model is {camera.width}x{camera.height} px but '
                                       f'the image is {image_size[0]}x{image_size[1]} px')
-            key = (camera, w, h)
-            if key not in self._mask_cache:
-                m = camera.scaled(w, h).valid_mask()
-                self._mask_cache[key] = self._erode(m)
-                if len(self._mask_cache) > 8:
-                    self._mask_cache.pop(next(iter(self._mask_cache)))
-            return self._mask_cache[key]
+            return self._cached(('valid', camera, w, h),
+                                lambda: self._erode(camera.scaled(w, h).valid_mask()))
         if valid_mask is not None:
             vm = np.asarray(valid_mask)
             if vm.shape != (image_size[1], image_size[0]):
@@ -368,9 +364,12 @@ class FeatureExtractor:
 
     def _circle(self, camera: Any, size: tuple[int, int]) -> np.ndarray:
         """(h, w) bool image circle of ``camera`` at ``size`` = (w, h) px (cached)."""
-        key = ('circle', camera, size)
+        return self._cached(('circle', camera, size), lambda: camera.scaled(*size).valid_mask())
+
+    def _cached(self, key: tuple, make: Callable[[], Any]) -> Any:
+        """Per-camera masks, computed once (the 8 most recent keys are kept)."""
         if key not in self._mask_cache:
-            self._mask_cache[key] = camera.scaled(*size).valid_mask()
+            self._mask_cache[key] = make()
             if len(self._mask_cache) > 8:
                 self._mask_cache.pop(next(iter(self._mask_cache)))
         return self._mask_cache[key]
