@@ -194,8 +194,9 @@ def test_sample_descriptors_cell_centres() -> None:
     torch.testing.assert_close(got[0, 1], desc[0, :, 1, 2])
 
 
-def test_descriptor_loss_hand_computed() -> None:
-    # 1x1-cell maps are constant, so use a 1-row map with distinct cells and points on centres
+def _three_cell_maps() -> tuple[torch.Tensor, ...]:
+    """Descriptor maps of one row of three cells with points on the cell centres (1x1-cell
+    maps are constant): sim[i, j] = <a_i, b_j> = [[0.6, 0, -1], [0.8, 1, 0], [0.6, 0, -1]]."""
     da = torch.zeros(1, 2, 1, 3)
     db = torch.zeros(1, 2, 1, 3)
     da[0, :, 0, 0] = torch.tensor([1.0, 0.0])
@@ -206,6 +207,11 @@ def test_descriptor_loss_hand_computed() -> None:
     db[0, :, 0, 2] = torch.tensor([-1.0, 0.0])
     pts = torch.tensor([[[3.5, 3.5], [11.5, 3.5], [19.5, 3.5]]])
     valid = torch.tensor([[True, True, True]])
+    return da, db, pts, valid
+
+
+def test_descriptor_loss_hand_computed() -> None:
+    da, db, pts, valid = _three_cell_maps()
     loss, stats = descriptor_loss(da, db, pts, pts, valid, pos_margin=1.0, neg_margin=0.2,
                                   neg_radius=4.0)
     # sim[i, j] = <a_i, b_j>
@@ -288,16 +294,7 @@ def test_descriptor_loss_all_negatives_penalises_collapse() -> None:
 
 def test_descriptor_loss_sum_is_the_papers_sum_over_positives() -> None:
     """'sum': eq. 7 with both sums divided by |P| (hand computation on the 3-point example)."""
-    da = torch.zeros(1, 2, 1, 3)
-    db = torch.zeros(1, 2, 1, 3)
-    da[0, :, 0, 0] = torch.tensor([1.0, 0.0])
-    da[0, :, 0, 1] = torch.tensor([0.0, 1.0])
-    da[0, :, 0, 2] = torch.tensor([1.0, 0.0])
-    db[0, :, 0, 0] = torch.tensor([0.6, 0.8])
-    db[0, :, 0, 1] = torch.tensor([0.0, 1.0])
-    db[0, :, 0, 2] = torch.tensor([-1.0, 0.0])
-    pts = torch.tensor([[[3.5, 3.5], [11.5, 3.5], [19.5, 3.5]]])
-    valid = torch.tensor([[True, True, True]])
+    da, db, pts, valid = _three_cell_maps()
     loss, _ = descriptor_loss(da, db, pts, pts, valid, 1.0, 0.2, 4.0, 'sum')
     sim = np.array([[0.6, 0.0, -1.0], [0.8, 1.0, 0.0], [0.6, 0.0, -1.0]])
     pos_term = np.maximum(0, 1.0 - np.diag(sim)).sum() / 3
