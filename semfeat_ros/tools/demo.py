@@ -100,6 +100,14 @@ def check_ready(conf: DemoConfig) -> None:
         raise DemoError(f'not built yet: {exc}') from exc
 
 
+def player_argv(bag: Path, rate: float, subscribers: int) -> list[str]:
+    """``semfeat-play`` with ``/clock`` at 100 Hz, starting once ``subscribers`` nodes listen to
+    the CameraInfo (every node does)."""
+    return [sys.executable, '-m', 'semfeat_ros.tools.play', str(bag), '--clock', '100',
+            '--rate', str(rate), '--no-progress', '--wait-topics', '/camera/front/camera_info',
+            '--wait-for-subscribers', str(subscribers), '--wait-timeout', '30']
+
+
 def run_pipeline(conf: DemoConfig) -> dict[str, Any]:
     """Run nodes + recorder + player; returns the last diagnostics per node and timings."""
     out = conf.out
@@ -120,12 +128,7 @@ def run_pipeline(conf: DemoConfig) -> dict[str, Any]:
             wait_for_nodes(NODES, pipe)
             t_up = time.monotonic() - t0
             print(f'nodes up after {t_up:.1f} s; replaying {conf.bag.name} ...', flush=True)
-            player = pipe.start('player', [
-                sys.executable, '-m', 'semfeat_ros.tools.play', str(conf.bag), '--clock', '100',
-                '--rate', str(conf.rate), '--no-progress',
-                # all three nodes listen to the CameraInfo: start when each is matched
-                '--wait-topics', '/camera/front/camera_info', '--wait-for-subscribers', '3',
-                '--wait-timeout', '30'])
+            player = pipe.start('player', player_argv(conf.bag, conf.rate, len(NODES)))
             while player.poll() is None:
                 pipe.check_alive()
                 client.spin_for(0.2)

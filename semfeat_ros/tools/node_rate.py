@@ -19,7 +19,7 @@ import time
 from typing import Any
 
 from semfeat_ros.offline.bag import one_line
-from semfeat_ros.tools.demo import DEFAULT_BAG, GraphClient
+from semfeat_ros.tools.demo import DEFAULT_BAG, GraphClient, player_argv
 from semfeat_ros.tools.launcher import Pipeline, PipelineConfig, wait_for_nodes
 
 PROG = 'python -m semfeat_ros.tools.node_rate'
@@ -45,11 +45,7 @@ def measure(conf: NodeRateConfig) -> dict[str, Any]:
             for node in NODES:
                 pipe.start(node, pipe.node_argv(node))
             wait_for_nodes(NODES, pipe)
-            player = pipe.start('player', [
-                sys.executable, '-m', 'semfeat_ros.tools.play', str(conf.bag), '--clock', '100',
-                '--rate', str(conf.rate), '--no-progress', '--wait-topics',
-                '/camera/front/camera_info', '--wait-for-subscribers', str(len(NODES)),
-                '--wait-timeout', '30'])
+            player = pipe.start('player', player_argv(conf.bag, conf.rate, len(NODES)))
             t0 = None
             while player.poll() is None:
                 pipe.check_alive()
