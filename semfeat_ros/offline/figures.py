@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -29,6 +30,16 @@ def _legend(ax: object, **kwargs: object) -> None:
     """A legend when something is labelled (an empty one only warns)."""
     if ax.get_legend_handles_labels()[0]:
         ax.legend(**kwargs)
+
+
+def _finish(fig: Any, ax: Any, title: str, path: Path, **legend: object) -> Path:
+    """Legend, title, layout; write ``path`` and close the figure."""
+    _legend(ax, **legend)
+    ax.set_title(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path
 
 
 def _spans(mask: np.ndarray) -> list[tuple[int, int]]:
@@ -64,12 +75,7 @@ def plot_trajectory_top(path: Path, gt_xyz: np.ndarray, gt_floor: np.ndarray,
     ax.set_ylabel('y (m, north)')
     ax.set_aspect('equal', adjustable='datalim')
     ax.grid(True, alpha=0.3)
-    _legend(ax, loc='best', fontsize=8)
-    ax.set_title(title, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return _finish(fig, ax, title, path, loc='best', fontsize=8)
 
 
 def plot_altitude(path: Path, gt_s: np.ndarray, gt_z: np.ndarray, gt_ramp: np.ndarray,
@@ -92,12 +98,7 @@ def plot_altitude(path: Path, gt_s: np.ndarray, gt_z: np.ndarray, gt_ramp: np.nd
     ax.set_xlabel('distance travelled (m)')
     ax.set_ylabel('altitude z (m)')
     ax.grid(True, alpha=0.3)
-    _legend(ax, loc='best', fontsize=8)
-    ax.set_title(title, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return _finish(fig, ax, title, path, loc='best', fontsize=8)
 
 
 def plot_cloud(path: Path, xyz: np.ndarray, label: np.ndarray, colors: np.ndarray,
@@ -137,9 +138,4 @@ def plot_cloud(path: Path, xyz: np.ndarray, label: np.ndarray, colors: np.ndarra
     ax.set_xlabel('x (m)')
     ax.set_ylabel('y (m)')
     ax.set_zlabel('z (m)')
-    _legend(ax, loc='upper left', fontsize=7, markerscale=4, ncol=2)
-    ax.set_title(title, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return _finish(fig, ax, title, path, loc='upper left', fontsize=7, markerscale=4, ncol=2)
