@@ -315,3 +315,19 @@ def test_odometry_validation() -> None:
     with pytest.raises(MapperInputError, match='orthonormal'):
         OdometryDelta(np.diag([2.0, 1.0, 1.0, 1.0]), np.eye(6)).validated()
     assert GnssFix(1, np.zeros(3), None).covariance is None
+
+
+def test_session_odometry_leaves_roll_and_pitch_to_the_ramp() -> None:
+    from semfeat_ros.camera import Extrinsic, FisheyeCamera
+    from semfeat_ros.mapping.session import MappingSession, SessionConfig
+
+    cam = FisheyeCamera(640, 512, 186.7, 186.7, 320, 256, fov_deg=190)
+    conf = SessionConfig(odom_sigma_rad_per_m=0.002, odom_sigma_tilt_rad_per_m=0.02)
+    s = MappingSession(cam, Extrinsic((1.0, 0.0, 1.0), (0.0, 0.0, 0.0)).T_base_cam, None, conf)
+    T = np.eye(4)
+    T[0, 3] = 2.0  # 2 m straight ahead
+    assert s._delta(np.eye(4)) is None
+    d = s._delta(T)
+    sig = np.sqrt(np.diag(d.covariance))  # (roll, pitch, yaw, x, y, z)
+    np.testing.assert_allclose(sig[:3], [0.04, 0.04, 0.004])
+    np.testing.assert_allclose(sig[3:], [0.04] * 3)

@@ -381,3 +381,45 @@ def test_keyframe_rotations_from_far_tracks_bound_heading_drift() -> None:
         assert (run.mapper.stats['rotation_factors'] > 0) == (sigma > 0)
         ates[sigma] = ate_rmse(*run.trajectory(), align=True)
     assert ates[0.1] < 0.15 and ates[0.1] < 0.5 * ates[0.0], ates
+
+
+def test_level_prior_holds_the_decks_level_and_leaves_the_ramp_alone() -> None:
+    # odometry with loose roll/pitch and landmarks within 2 m: the deck's pitch drifts; the
+    # level prior (on keyframes estimated level on both sides) keeps the altitude flat there
+    # and never lands on the 15 % ramp
+    conf = DriveConfig(seed=3, odometry=True)
+    err, ramp = {}, {}
+    for sigma in (0.0, 1.0):
+        run = drive_through(conf, mapper_conf={'level_prior_sigma_deg': sigma,
+                                               'lm_max_depth_m': 2.0})
+        assert (run.mapper.stats['level_factors'] > 0) == (sigma > 0)
+        est, gt = run.trajectory()
+        top = gt[:, 2, 3] > 2.9  # the upper deck (3 m)
+        dz = est[top, 2, 3] - gt[top, 2, 3]
+        err[sigma] = float(np.ptp(dz))  # altitude drift along the deck (m)
+        tilt = np.degrees(np.arccos(np.clip(est[:, 2, 2], -1, 1)))
+        on_ramp = np.degrees(np.arccos(np.clip(gt[:, 2, 2], -1, 1))) > 8.0
+        ramp[sigma] = float(np.median(tilt[on_ramp]))
+    assert err[1.0] < 0.5 * err[0.0], err
+    assert abs(ramp[1.0] - 8.5) < 1.0, ramp  # the ramp keeps its slope
+
+
+def test_landmark_floor_is_its_storey_and_the_observers_decide_at_a_slab() -> None:
+    from semfeat_ros.mapping.floors import FloorLevels
+    from semfeat_ros.mapping.mapper import _Landmark
+
+    m = Mapper(CAMERA, T_BASE_CAM)
+    m._kf_alt = [0.0, 0.0, 3.6, 3.6]  # keyframes 0-1 on the ground level, 2-3 on the deck
+    levels = FloorLevels(np.array([0.0, 3.6]), np.ones(4, bool))
+
+    def level(z: float, kids: list[int]) -> float:
+        lm = _Landmark(0, 0, 0, False, np.array([0.0, 0.0, z]), kf_ids=kids)
+        return m._floor_alt(lm, lm.xyz, levels)
+
+    assert level(0.1, [2, 3]) == 0.0  # the street seen over the deck's railing
+    assert level(1.5, [2, 3]) == 0.0  # a tree top seen from the deck
+    assert level(3.4, [0, 1]) == 0.0  # the ceiling seen from below
+    assert level(3.4, [2, 3]) == 3.6  # the deck surface seen from above (noisy height)
+    assert level(3.7, [0, 1, 2]) == 3.6  # seen from both: the deck
+    assert level(6.0, [0]) == 3.6  # above the top level: the top storey
+    assert level(-1.0, [2]) == 0.0

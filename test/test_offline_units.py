@@ -13,11 +13,14 @@ from semfeat_ros.offline.config import node_config, parse_overrides, read_node_p
 from semfeat_ros.offline.errors import EvaluationError, OfflineConfigError, OutputPathError
 from semfeat_ros.offline.frontends import OpenCVFrontend, matcher_frame
 from semfeat_ros.offline.metrics import (
+    DepthView,
     associate,
     evaluate_trajectory,
     floor_accuracy,
     pitch_of,
     storey_of,
+    surface_accuracy,
+    surface_errors,
     timing_stats,
 )
 from semfeat_ros.offline.paths import confined, prepare_out_dir
@@ -184,3 +187,29 @@ def test_opencv_frontend(kind: str) -> None:
     assert frame.keypoints.dtype == np.float32 and frame.bearings.shape == (len(out), 3)
     with pytest.raises(OfflineConfigError, match='frontend'):
         OpenCVFrontend('surf')
+
+
+def test_surface_errors_against_a_rendered_wall() -> None:
+    from semfeat_ros.camera import FisheyeCamera
+
+    cam = FisheyeCamera(64, 48, 20.0, 20.0, 31.5, 23.5, fov_deg=190)
+    vv, uu = np.mgrid[0:48, 0:64]
+    rays = cam.unproject(np.stack([uu.ravel(), vv.ravel()], 1).astype(float), check=False)
+    rays = rays / np.linalg.norm(rays, axis=1, keepdims=True)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        rng = np.where(rays[:, 2] > 0.05, 5.0 / rays[:, 2], np.inf)  # wall at z = 5 m
+    T = np.eye(4)
+    T[:3, 3] = [10.0, 0.0, 0.0]  # the camera stands at x = 10 m in the map
+    view = DepthView(rng.reshape(48, 64).astype(np.float32), T, cam)
+    on_wall = np.array([[10.0, 0.0, 5.0], [11.0, 0.5, 5.0]])
+    behind = np.array([[10.0, 0.0, 6.0]])  # 1 m behind the wall, straight ahead
+    unseen = np.array([[10.0, 0.0, -5.0]])  # behind the camera: no range there
+    err = surface_errors(np.vstack([on_wall, behind, unseen]), [view])
+    assert err[0] < 0.05 and err[1] < 0.3 and abs(err[2] - 1.0) < 0.05 and np.isnan(err[3])
+    # the best of several views counts; no view: NaN
+    assert np.isnan(surface_errors(on_wall, [])).all()
+    cloud = SemanticCloud.build(np.vstack([on_wall, behind, unseen]), np.zeros(4, np.uint8),
+                                np.zeros(4, np.uint8), np.arange(4, dtype=np.uint32),
+                                np.full(4, 3), load_labels().colors)
+    acc = surface_accuracy(cloud, Similarity(1.0, np.eye(3), np.zeros(3)), [view, view])
+    assert acc['n_seen'] == 3 and acc['on_surface'] == pytest.approx(2 / 3)

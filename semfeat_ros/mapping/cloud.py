@@ -67,7 +67,7 @@ class VoxelMap:
         self._label = np.zeros(self._cap, np.uint8)
         self._lid = np.zeros(self._cap, np.uint32)
         self._nobs = np.zeros(self._cap, np.int64)
-        self._alt = np.zeros(self._cap)  # mean altitude of the observing base poses (m)
+        self._alt = np.zeros(self._cap)  # highest plateau pose that observed it (m; NaN: none)
         self._used = np.zeros(self._cap, bool)
         self._free: list[int] = []
         self._n = 0  # rows ever allocated
@@ -125,18 +125,20 @@ class VoxelMap:
                 return
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """``(xyz, label, landmark_id, n_obs, observer_altitude)`` of the stored landmarks."""
+        """``(xyz, label, landmark_id, n_obs, observer_altitude)`` of the stored landmarks
+        (observer altitude: of the highest plateau pose that saw it, m; NaN: none)."""
         m = self._used[: self._n]
         return (self._xyz[: self._n][m], self._label[: self._n][m], self._lid[: self._n][m],
                 self._nobs[: self._n][m], self._alt[: self._n][m])
 
     def transform(self, s: float, R: np.ndarray, t: np.ndarray,
-                  floor_of: Callable[[float], int]) -> None:
-        """Apply ``x -> s R x + t`` to every point (and altitude); voxels are re-keyed."""
+                  floor_of: Callable[[np.ndarray, float], int]) -> None:
+        """Apply ``x -> s R x + t`` to every point (and altitude); voxels are re-keyed by
+        ``floor_of(xyz, observer_altitude)`` of the moved point."""
         xyz, label, lid, nobs, alt = self.arrays()
         xyz = s * xyz @ R.T + t
         alt = s * alt + t[2]
         self.__init__(self.voxel_size, self.max_points)
         for i in range(len(xyz)):
             self.insert(xyz[i], int(label[i]), int(lid[i]), int(nobs[i]), float(alt[i]),
-                        int(floor_of(alt[i])))
+                        int(floor_of(xyz[i], float(alt[i]))))

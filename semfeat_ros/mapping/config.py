@@ -45,9 +45,22 @@ default_conf: dict[str, Any] = {
     'init_max_frames': 40,  # frames without success before the reference view is replaced
     'init_require_metric': True,  # camera-only: retry until the ground plane gives the scale
     # ---- visual rotation between keyframes --------------------------------------------------
-    'vision_rotation_sigma_deg': 0.1,  # sigma of the keyframe-to-keyframe rotation from the
-    #                                    5-point geometry of common tracks (deg; 0 disables)
+    'vision_rotation_sigma_deg': 0.3,  # sigma of the keyframe-to-keyframe rotation from the
+    #                                    5-point geometry of common tracks (deg; 0 disables);
+    #                                    long drive, ORB: 0.1 -> ATE 0.53 m, 0.3 -> 0.23, 1 -> 0.34
     'vision_rotation_min_tracks': 20,  # common tracks (and inliers) needed for it
+    # ---- level floors (parking decks are level; ramps are not) ------------------------------
+    'level_prior_sigma_deg': 1.0,  # keyframes whose vehicle tilt (estimate) is below
+    #                                level_max_tilt_deg get a robust prior: base z-axis along
+    #                                map z with this sigma (deg, per axis; 0 disables). Without
+    #                                it the pitch is unobserved on a level without GNSS and the
+    #                                altitude drifts (long drive: ~1 m over 70 m)
+    'level_max_tilt_deg': 3.0,  # tilt above which a keyframe is taken to be on a ramp (deg):
+    #                             between a deck's drainage fall (~1 deg) and a ramp (~6 deg+)
+    'level_max_change_deg': 1.0,  # ... and whose neighbours are tilted by less than this against
+    #                               it (deg): a ramp's start or end is not level yet
+    'level_delay_keyframes': 5,  # the prior goes to the keyframe this many keyframes back, when
+    #                              it and its neighbours on both sides are all estimated level
     # ---- landmarks ----------------------------------------------------------------------------
     'lm_min_keyframes': 3,  # keyframes that must see a track before it becomes a landmark
     'lm_min_parallax_deg': 2.0,  # largest angle between its rays (deg)
@@ -114,8 +127,10 @@ default_conf: dict[str, Any] = {
     'floor_slope_window_m': 4.0,  # travelled distance over which the slope is measured (m)
     'floor_min_plateau_m': 6.0,  # shortest plateau that makes a level (m travelled)
     'floor_merge_m': 1.2,  # plateaus closer in altitude than this are one level (m)
-    'floor_point_margin_m': 0.5,  # a landmark seen only from ramps belongs to the highest level
-    #                               at most this far above it (m)
+    'floor_point_margin_m': 0.5,  # a landmark within this of a level's altitude (m) takes the
+    #                               level of the plateau keyframes that saw it (a ceiling seen from
+    #                               below is the lower storey, the deck seen from above the upper);
+    #                               any other landmark belongs to the storey its altitude is in
     # ---- evaluation ---------------------------------------------------------------------------
     'keep_full_graph': False,  # keep every factor for batch_optimize() (memory grows)
 }
@@ -134,7 +149,8 @@ _POSITIVE = (
     'window_keyframes', 'relinearize_threshold', 'prior_sigma_rad', 'prior_sigma_m',
     'recovery_sigma_m', 'recovery_sigma_rad', 'reinit_link_sigma_m', 'reinit_link_sigma_rad',
     'voxel_size_m', 'floor_max_slope', 'floor_slope_window_m', 'floor_min_plateau_m',
-    'floor_merge_m', 'floor_point_margin_m', 'cloud_min_parallax_deg',
+    'floor_merge_m', 'floor_point_margin_m', 'cloud_min_parallax_deg', 'level_max_tilt_deg',
+    'level_max_change_deg',
 )
 _INT_MIN = {
     'min_tracking_inliers': 4, 'init_min_tracks': 8, 'vision_rotation_min_tracks': 8,
@@ -142,7 +158,7 @@ _INT_MIN = {
     'lm_min_keyframes': 2, 'ground_max_per_keyframe': 0, 'max_obs_per_keyframe': 10,
     'max_new_landmarks': 1, 'ground_min_points': 3, 'gnss_align_min_fixes': 2,
     'gnss_max_rejects': 1, 'relinearize_skip': 1, 'marginalize_every': 1, 'extra_iterations': 0,
-    'cloud_min_obs': 1,
+    'cloud_min_obs': 1, 'level_delay_keyframes': 1,
     'max_map_points': 1, 'seed': 0,
 }
 _FRACTIONS = ('kf_min_tracked_fraction', 'init_min_inlier_ratio', 'init_odom_min_inlier_ratio',
@@ -171,9 +187,10 @@ def merge_conf(conf: dict[str, Any] | None = None) -> dict[str, Any]:
         v = out[key]
         if isinstance(v, bool) or not isinstance(v, int | float) or not 0.0 <= v <= 1.0:
             raise MapperConfigError(f'{key} must be in [0, 1], got {v!r}')
-    v = out['vision_rotation_sigma_deg']
-    if isinstance(v, bool) or not isinstance(v, int | float) or not v >= 0:
-        raise MapperConfigError(f'vision_rotation_sigma_deg must be >= 0 (deg), got {v!r}')
+    for key in ('vision_rotation_sigma_deg', 'level_prior_sigma_deg'):
+        v = out[key]
+        if isinstance(v, bool) or not isinstance(v, int | float) or not v >= 0:
+            raise MapperConfigError(f'{key} must be >= 0 (deg), got {v!r}')
     if not out['kf_min_distance_m'] >= 0:
         raise MapperConfigError(
             f'kf_min_distance_m must be >= 0, got {out["kf_min_distance_m"]!r}')

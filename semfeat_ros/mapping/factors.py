@@ -57,6 +57,15 @@ def rotation_between(k1: int, k2: int, T_12: np.ndarray, sigma_rad: float,
     return gtsam.BetweenFactorPose3(k1, k2, gtsam.Pose3(np.asarray(T_12, float)), noise)
 
 
+def level_factor(key: int, up_c: np.ndarray, sigma_rad: float, kernel: str,
+                 k: float) -> gtsam.NonlinearFactor:
+    """The vehicle stands level: its up axis ``up_c`` (unit, camera optical frame) maps to map
+    +z. A 2-D error (rad) on camera pose ``key``: tilt only, yaw and position are free."""
+    noise = robust(gtsam.noiseModel.Isotropic.Sigma(2, float(sigma_rad)), kernel, k)
+    return gtsam.AttitudeFactorPose3(key, gtsam.Unit3(np.array([0.0, 0.0, 1.0])), noise,
+                                     gtsam.Unit3(np.asarray(up_c, float)))
+
+
 def gnss_factor(key: int, position: np.ndarray, cov: np.ndarray, lever_arm_cam: np.ndarray,
                 k: float) -> gtsam.NonlinearFactor:
     """Antenna position (m, map) of camera pose ``key``; the antenna sits at ``lever_arm_cam``

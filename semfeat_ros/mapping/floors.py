@@ -27,6 +27,35 @@ class FloorLevels:
         return np.minimum(idx, 255).astype(np.uint8)
 
 
+def storey_altitude(z: np.ndarray, seen: np.ndarray, altitudes: np.ndarray,
+                    margin: float) -> np.ndarray:
+    """Altitude (m) of the level each point belongs to: the storey its altitude lies in.
+
+    Args:
+        z: (N,) point altitudes (m).
+        seen: (N,) highest altitude of a plateau pose that observed each point (m; NaN: none).
+        altitudes: (L,) level altitudes (m), ascending.
+        margin: half-thickness of a level's slab (m).
+    Returns:
+        (N,) the altitude of the highest level below each point. Within ``margin`` of a level
+        above the lowest (its slab: the deck on top, the lower storey's ceiling underneath)
+        the observers decide: a point seen only from below that slab is the lower storey's.
+        Points below every level belong to the lowest; with no level, z itself.
+    """
+    z = np.asarray(z, dtype=np.float64).reshape(-1)
+    seen = np.asarray(seen, dtype=np.float64).reshape(-1)
+    alts = np.asarray(altitudes, dtype=np.float64).reshape(-1)
+    if len(alts) == 0:
+        return z.copy()
+    below = np.maximum(np.searchsorted(alts, z, side='right') - 1, 0)
+    out = alts[below]
+    j = np.abs(z[:, None] - alts[None]).argmin(axis=1)
+    slab = np.abs(alts[j] - z) <= margin
+    from_below = (j > 0) & (seen < alts[j] - margin)  # NaN compares False: the slab's level
+    out[slab] = np.where(from_below[slab], alts[np.maximum(j[slab] - 1, 0)], alts[j[slab]])
+    return out
+
+
 def detect_floors(positions: np.ndarray, *, max_slope: float = 0.05,
                   slope_window_m: float = 4.0, min_plateau_m: float = 6.0,
                   merge_m: float = 1.2) -> FloorLevels:

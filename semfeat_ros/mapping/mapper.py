@@ -31,7 +31,7 @@ from semfeat_ros.mapping import factors as fac
 from semfeat_ros.mapping.cloud import SemanticCloud, VoxelMap
 from semfeat_ros.mapping.config import merge_conf
 from semfeat_ros.mapping.errors import MapperConfigError, StampOrderError
-from semfeat_ros.mapping.floors import FloorLevels, detect_floors
+from semfeat_ros.mapping.floors import FloorLevels, detect_floors, storey_altitude
 from semfeat_ros.mapping.geometry import (
     adjoint,
     align_yaw,
@@ -104,7 +104,7 @@ class _Keyframe:
 class _Rec:
     rid: int
     factor: Any  # gtsam.NonlinearFactor
-    kind: str  # bearing, ground, odom, gnss, prior, link, anchor, recovery, dead
+    kind: str  # bearing, ground, odom, vrot, level, gnss, prior, link, anchor, recovery, dead
     kid: int = -1
     lid: int = -1
     index: int = -1  # slot in the smoother's factor graph
@@ -234,7 +234,7 @@ class Mapper:
             frames=0, keyframes=0, landmarks=0, update_failures=0, recoveries=0,
             outlier_factors=0, landmarks_killed=0, gnss_accepted=0, gnss_rejected=0,
             tracking_lost=0, initialisations=0, rejected_rows=0,
-            obs_beyond_90deg=0, rotation_factors=0)
+            obs_beyond_90deg=0, rotation_factors=0, level_factors=0)
 
     @property
     def state(self) -> str:
@@ -343,7 +343,7 @@ class Mapper:
             if self._publishable(lm):
                 key = L(lm.lid)
                 xyz = self._estimate.atPoint3(key) if self._estimate.exists(key) else lm.xyz
-                rows.append((xyz, lm.label, lm.lid, lm.n_obs, self._floor_alt(lm, xyz, levels)))
+                rows.append((xyz, lm.label, lm.lid, lm.n_obs, self._seen_alt(lm, levels)))
         if rows:
             xyz_w = np.array([r[0] for r in rows])
             lab_w = np.array([r[1] for r in rows], np.uint8)
@@ -356,7 +356,9 @@ class Mapper:
         xyz = np.concatenate([xyz_f, xyz_w])
         lab = np.concatenate([lab_f, lab_w])
         keep = self._static[lab]
-        alt = np.concatenate([alt_f, alt_w])[keep]
+        # floors from the current levels (they grow as the drive finds new ones)
+        alt = storey_altitude(xyz[:, 2], np.concatenate([alt_f, alt_w]), levels.altitudes,
+                              self.conf['floor_point_margin_m'])[keep]
         return SemanticCloud.build(
             xyz[keep], lab[keep], levels.assign(alt),
             np.concatenate([lid_f, lid_w])[keep], np.concatenate([nobs_f, nobs_w])[keep],
@@ -825,6 +827,7 @@ class Mapper:
         self._observe_keyframe(frame, mappable, kid)
         if prev in self._kfs:
             self._add_rotation_rec(frame, mappable, prev, kid, recs)
+        self._add_level_rec(kid, recs)
         seen: list[int] = []
         seen_rows: list[int] = []
         for tid, i in lm_obs:
@@ -875,6 +878,31 @@ class Mapper:
         recs.append(self._rec(f, 'vrot', kb))
         self.stats['rotation_factors'] += 1
 
+    def _add_level_rec(self, kid: int, recs: list[_Rec]) -> None:
+        """Level-floor prior on keyframe ``k = kid - level_delay_keyframes``, once the smoother
+        has seen the keyframes after it. Every keyframe from ``level_delay`` before ``k`` to the
+        newest must be estimated below ``level_max_tilt_deg`` and tilted by less than
+        ``level_max_change_deg`` against ``k``: a plateau, not a ramp or its transition. The
+        tilt change between neighbours is observed well (odometry, tracks) even where the
+        absolute tilt lags; deciding on the predicted pose of a new keyframe alone would hold
+        a ramp level."""
+        c = self.conf
+        delay = c['level_delay_keyframes']
+        k = kid - delay
+        if c['level_prior_sigma_deg'] <= 0 or k < 0 or k not in self._kfs:
+            return
+        first = max(0, k - delay)
+        R = np.array(self._kf_T_wc[first:kid + 1])[:, :3, :3]
+        up = R @ self._up_c  # (n, 3) base up axes in the map
+        tilt = np.degrees(np.arccos(np.clip(up[:, 2], -1.0, 1.0)))
+        change = np.degrees(np.arccos(np.clip(up @ up[k - first], -1.0, 1.0)))
+        if tilt.max() > c['level_max_tilt_deg'] or change.max() > c['level_max_change_deg']:
+            return
+        f = fac.level_factor(X(k), self._up_c, np.radians(c['level_prior_sigma_deg']),
+                             c['robust_kernel'], c['robust_k'])
+        recs.append(self._rec(f, 'level', k))
+        self.stats['level_factors'] += 1
+
     def _observed(self, lm: _Landmark, kid: int, bearing: np.ndarray) -> None:
         """Bookkeeping of a new observation: count and observing keyframe."""
         lm.n_obs += 1
@@ -898,17 +926,17 @@ class Mapper:
                 and lm.reproj_px <= c['max_reprojection_px']
                 and lm.max_par >= np.radians(c['cloud_min_parallax_deg']))
 
+    def _seen_alt(self, lm: _Landmark, levels: FloorLevels) -> float:
+        """Highest altitude (m) of a plateau keyframe that observed ``lm`` (NaN: none)."""
+        seen = [self._kf_alt[k] for k in lm.kf_ids if k < len(levels.flat) and levels.flat[k]]
+        return float(max(seen)) if seen else float('nan')
+
     def _floor_alt(self, lm: _Landmark, xyz: np.ndarray, levels: FloorLevels) -> float:
-        """Altitude (m) that decides a landmark's level: the mean altitude of the keyframes on
-        a plateau that observed it (a ceiling seen from below belongs to the lower level); for
-        a landmark seen only from ramps, the level its own height stands on."""
-        flat = [self._kf_alt[k] for k in lm.kf_ids if k < len(levels.flat) and levels.flat[k]]
-        if flat:
-            return float(np.mean(flat))
-        below = levels.altitudes[levels.altitudes <= xyz[2] + self.conf['floor_point_margin_m']]
-        if len(below):
-            return float(below.max())
-        return float(levels.altitudes.min()) if len(levels.altitudes) else float(xyz[2])
+        """Altitude (m) of the level of a landmark (:func:`storey_altitude`): the storey its
+        altitude lies in (the street seen over a roof deck's railing is the ground storey's),
+        the observers deciding within ``floor_point_margin_m`` of a level's slab."""
+        return float(storey_altitude(np.array([xyz[2]]), np.array([self._seen_alt(lm, levels)]),
+                                     levels.altitudes, self.conf['floor_point_margin_m'])[0])
 
     def _touch(self, lm: _Landmark, kid: int, ts: dict[int, float]) -> None:
         """Landmark seen at keyframe ``kid``: refresh its smoother timestamp."""
@@ -1180,7 +1208,9 @@ class Mapper:
         self._history = [(st, move(T @ self.T_cb) @ self.T_bc) for st, T in self._history]
         self._floors = None
         levels = self.floor_levels()
-        self._voxels.transform(s, R, t, lambda z: int(levels.assign(np.array(z))))
+        margin = self.conf['floor_point_margin_m']
+        self._voxels.transform(s, R, t, lambda p, a: int(levels.assign(storey_altitude(
+            p[2:3], np.array([a]), levels.altitudes, margin))[0]))
         if self._link is not None:
             self._link['T_wc'] = move(self._link['T_wc'] @ self.T_cb) @ self.T_bc
         p = self._gnss_pending
@@ -1464,9 +1494,9 @@ class Mapper:
             self._final_xyz[lid] = np.array(xyz)
         if self._publishable(lm):
             levels = self.floor_levels()
-            alt = self._floor_alt(lm, xyz, levels)
-            self._voxels.insert(np.asarray(xyz), lm.label, lid, lm.n_obs, alt,
-                                int(levels.assign(np.array(alt))))
+            self._voxels.insert(np.asarray(xyz), lm.label, lid, lm.n_obs,
+                                self._seen_alt(lm, levels),
+                                int(levels.assign(np.array(self._floor_alt(lm, xyz, levels)))))
 
     def _check_outliers(self, lids: list[int]) -> None:
         """Chi-square test of the bearing factors of the landmarks just observed; factors

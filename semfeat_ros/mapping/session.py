@@ -27,6 +27,10 @@ class SessionConfig:
     odom_sigma_per_m: float = 0.02  # translation noise of wheel odometry (m per m travelled)
     odom_sigma_rad_per_rad: float = 0.02  # rotation noise (rad per rad turned)
     odom_sigma_rad_per_m: float = 0.002  # rotation noise from slip (rad per m travelled)
+    odom_sigma_tilt_rad_per_m: float = 0.02  # roll and pitch (rad per m travelled): planar wheel
+    #   odometry does not measure them, and a ramp's start or end changes the pitch by 6-10 deg
+    #   over a few metres; with the yaw's 0.002 rad/m the odometry held the long drive's ramp
+    #   17 % too shallow
     odom_sigma_floor: float = 1e-3  # smallest standard deviation (m or rad)
     odom_max_gap_s: float = 0.25  # interpolate only between samples at most this far apart (s)
     odom_buffer_s: float = 10.0  # odometry history kept (s)
@@ -135,7 +139,9 @@ class MappingSession:
         s_rot = max(c.odom_sigma_floor, c.odom_sigma_rad_per_rad * angle
                     + c.odom_sigma_rad_per_m * dist)
         s_trans = max(c.odom_sigma_floor, c.odom_sigma_per_m * dist)
-        cov = np.diag([s_rot**2] * 3 + [s_trans**2] * 3)  # GTSAM order: rotation, translation
+        s_tilt = max(s_rot, c.odom_sigma_tilt_rad_per_m * dist)
+        # GTSAM order: rotation (roll, pitch, yaw of base_link), translation
+        cov = np.diag([s_tilt**2, s_tilt**2, s_rot**2] + [s_trans**2] * 3)
         return OdometryDelta(T, cov)
 
     def process(self, tracks: Tracks) -> MapperResult:

@@ -84,6 +84,9 @@ class MappingNodeConfig:
                                     range=(1e-5, 1.0), read_only=True)
     odom_sigma_rad_per_rad: float = param(0.02, 'Wheel odometry rotation noise (rad per rad)',
                                           range=(1e-5, 1.0), read_only=True)
+    odom_sigma_tilt_rad_per_m: float = param(
+        0.02, 'Roll/pitch freedom of planar wheel odometry (rad per m): ramps tilt the car',
+        range=(1e-5, 1.0), read_only=True)
     cloud_period_s: float = param(1.0, 'Period of /semantic_cloud (s): the full map, latched',
                                   range=(0.05, 3600.0), read_only=True)
     output_dir: str = param('semfeat_map', '~/save_map writes cloud.ply and trajectory.tum here',
@@ -103,7 +106,8 @@ def mapper_conf(c: MappingNodeConfig) -> dict[str, Any]:
 
 def session_conf(c: MappingNodeConfig) -> SessionConfig:
     return SessionConfig(odom_sigma_per_m=c.odom_sigma_per_m,
-                         odom_sigma_rad_per_rad=c.odom_sigma_rad_per_rad)
+                         odom_sigma_rad_per_rad=c.odom_sigma_rad_per_rad,
+                         odom_sigma_tilt_rad_per_m=c.odom_sigma_tilt_rad_per_m)
 
 
 class MappingNode(Node):

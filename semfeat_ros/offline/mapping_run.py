@@ -75,6 +75,7 @@ class Topics:
     gnss: str = '/gnss/fix'
     ground_truth: str = '/ground_truth/pose'
     gt_semantic: str = '/ground_truth/semantic'
+    gt_depth: str = '/ground_truth/depth'
 
 
 @dataclass

@@ -16,6 +16,10 @@ estimates outside the ground truth's time span are left out).
   slab and belongs to the level beneath it; points below the lowest level belong to it). The
   estimated floor indices are translated into ground-truth levels through the keyframes: each
   estimated level maps to the ground-truth level most of its plateau keyframes stand on.
+* Surfaces: a map point (aligned into the ground-truth frame) lies on the rendered geometry when,
+  in some ground-truth range image it projects into, its range along the ray differs from the
+  rendered range by at most ``tolerance_m`` (the smallest difference over the images counts:
+  occluded in one view, seen in another).
 """
 from __future__ import annotations
 
@@ -218,6 +222,51 @@ def floor_accuracy(cloud: SemanticCloud, sim3: Similarity, est_levels: FloorLeve
     out.update(accuracy=float(np.mean(pred == truth)), est_to_gt=mapping[:n_est].tolist(),
                confusion=conf.tolist())
     return out
+
+
+@dataclass(frozen=True)
+class DepthView:
+    """A ground-truth range image: ``depth`` (H, W) m along the ray (inf/NaN: none), the
+    camera pose ``T_map_cam`` (4, 4) optical -> map (m) and the ``camera`` model it was
+    rendered with."""
+
+    depth: np.ndarray
+    T_map_cam: np.ndarray
+    camera: object
+
+
+def surface_errors(xyz: np.ndarray, views: Sequence[DepthView]) -> np.ndarray:
+    """(N,) smallest |range - rendered range| (m) of points ``xyz`` (N, 3) (ground-truth map
+    frame) over the views they project into; NaN for a point no view sees."""
+    pts = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    best = np.full(len(pts), np.inf)
+    for v in views:
+        T_cm = np.linalg.inv(v.T_map_cam)
+        pc = pts @ T_cm[:3, :3].T + T_cm[:3, 3]
+        uv, ok = v.camera.project(pc)
+        h, w = v.depth.shape
+        ui, vi = np.rint(uv[:, 0]).astype(np.int64), np.rint(uv[:, 1]).astype(np.int64)
+        ok &= (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
+        d = np.full(len(pts), np.nan)
+        d[ok] = v.depth[vi[ok], ui[ok]]
+        ok &= np.isfinite(d)
+        err = np.abs(np.linalg.norm(pc, axis=1) - d)
+        best[ok] = np.minimum(best[ok], err[ok])
+    best[~np.isfinite(best)] = np.nan
+    return best
+
+
+def surface_accuracy(cloud: SemanticCloud, sim3: Similarity, views: Sequence[DepthView],
+                     tolerance_m: float = 0.5) -> dict[str, object]:
+    """Share of map points (aligned by ``sim3``) on the rendered surfaces (see the module
+    doc): ``n_seen`` points inside some view, ``on_surface`` the fraction of them within
+    ``tolerance_m``, ``median_error_m`` their median error."""
+    err = surface_errors(sim3.apply(cloud.xyz.astype(np.float64)), views)
+    seen = np.isfinite(err)
+    return {'n_points': int(len(err)), 'n_views': len(views), 'n_seen': int(seen.sum()),
+            'tolerance_m': tolerance_m,
+            'on_surface': float(np.mean(err[seen] <= tolerance_m)) if seen.any() else None,
+            'median_error_m': float(np.median(err[seen])) if seen.any() else None}
 
 
 def timing_stats(values_ms: Sequence[float]) -> dict[str, float | int | None]:

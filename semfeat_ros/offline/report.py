@@ -7,6 +7,7 @@ the reason in ``evaluation_error``) and the details in nested sections; see
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Sequence
 import json
 import math
 from pathlib import Path
@@ -21,12 +22,14 @@ from semfeat_ros.offline.errors import EvaluationError
 from semfeat_ros.offline.mapping_run import MapRun
 from semfeat_ros.offline.metrics import (
     RAMP_PITCH_RAD,
+    DepthView,
     TrajectoryEvaluation,
     evaluate_trajectory,
     floor_accuracy,
     gt_levels,
     pitch_of,
     storey_of,
+    surface_accuracy,
     timing_stats,
     travelled,
 )
@@ -104,7 +107,8 @@ def run_summary(run: MapRun) -> dict[str, Any]:
     }
 
 
-def evaluate_run(run: MapRun, gt_stamps: np.ndarray, gt_poses: np.ndarray
+def evaluate_run(run: MapRun, gt_stamps: np.ndarray, gt_poses: np.ndarray,
+                 depth_views: Sequence[DepthView] = ()
                  ) -> tuple[dict[str, Any], TrajectoryEvaluation | None]:
     """Trajectory and floor metrics of the run's keyframe trajectory against the ground truth.
 
@@ -124,6 +128,8 @@ def evaluate_run(run: MapRun, gt_stamps: np.ndarray, gt_poses: np.ndarray
     cloud = mapper.cloud()
     out['floors'] = floor_accuracy(cloud, ev.sim3, mapper.floor_levels(), poses[:, :3, 3],
                                    levels_gt.altitudes)
+    if depth_views:
+        out['surfaces'] = surface_accuracy(cloud, ev.sim3, depth_views)
     return out, ev
 
 
@@ -134,7 +140,8 @@ def output_paths(out_dir: Path) -> dict[str, Path]:
 
 def write_map_outputs(run: MapRun, out_dir: Path, gt: tuple[np.ndarray, np.ndarray] | None,
                       bag: str, make_figures: bool = True,
-                      extra: dict[str, Any] | None = None) -> dict[str, Any]:
+                      extra: dict[str, Any] | None = None,
+                      depth_views: Sequence[DepthView] = ()) -> dict[str, Any]:
     """Write the files of :data:`FILES` into ``out_dir``; returns the metrics written
     (``extra`` is added to metrics.json as it is, e.g. the configuration used).
 
@@ -155,13 +162,14 @@ def write_map_outputs(run: MapRun, out_dir: Path, gt: tuple[np.ndarray, np.ndarr
     metrics: dict[str, Any] = {'bag': bag}
     ev = None
     if gt is not None and len(gt[0]):
-        ev_metrics, ev = evaluate_run(run, gt[0], gt[1])
+        ev_metrics, ev = evaluate_run(run, gt[0], gt[1], depth_views)
         metrics.update(ev_metrics)
     traj = metrics.get('trajectory', {})
     floors = metrics.get('floors', {})
     head = {
         **{k: traj.get(k) for k in HEADLINE_KEYS if k.startswith(('ate_', 'scale_', 'ramp_'))},
         'floor_accuracy': floors.get('accuracy'),
+        'cloud_on_surfaces': metrics.get('surfaces', {}).get('on_surface'),
         'dynamic_points': summary['dynamic_points'], 'cloud_points': summary['cloud_points'],
         'frames_read': summary['frames_read'], 'frames_processed': summary['frames_processed'],
         'keyframes': summary['keyframes'],

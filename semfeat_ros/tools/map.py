@@ -26,7 +26,7 @@ import sys
 from typing import Any
 
 from semfeat_ros.nodes.feature_node import frontend_config
-from semfeat_ros.offline.bag import BagSource, one_line, read_poses
+from semfeat_ros.offline.bag import BagSource, one_line, read_depth_views, read_poses
 from semfeat_ros.offline.config import (
     node_config,
     parse_overrides,
@@ -141,12 +141,14 @@ def main(conf: MapToolConfig, bag: Path, out: Path) -> dict[str, Any]:
         output_paths(out_dir)  # fail before the long run if an output would escape --out
         run = run_mapping(source, mc, progress=conf.progress)
         gt = read_poses(source, mc.topics.ground_truth)
+        views = read_depth_views(source, mc.topics.gt_depth, gt, mc.T_base_cam, run.camera)
     config = {'frontend': conf.frontend, 'labels': conf.labels, 'use_odometry': mc.use_odometry,
               'use_gnss': mc.use_gnss, 'max_frames': conf.max_frames, 'start_s': conf.start_s,
               'tracks_topic': conf.tracks_topic, 'mapper_overrides': mc.mapper_conf,
               'matcher_conf': mc.matcher_conf, 'sources': notes}
     return write_map_outputs(run, out_dir, gt if len(gt[0]) else None, str(bag),
-                             make_figures=conf.figures, extra={'config': config})
+                             make_figures=conf.figures, extra={'config': config},
+                             depth_views=views)
 
 
 def _fmt(v: Any, unit: str = '') -> str:
@@ -169,6 +171,7 @@ def format_table(m: dict[str, Any]) -> str:
          f'{_fmt(m.get("ramp_altitude_rmse_sim3_m"), " m")} / '
          f'{_fmt(m.get("ramp_altitude_max_sim3_m"), " m")}'),
         ('floor accuracy', _fmt(m.get('floor_accuracy'))),
+        ('cloud points on rendered surfaces (0.5 m)', _fmt(m.get('cloud_on_surfaces'))),
         ('cloud points (dynamic)', f'{m["cloud_points"]} ({m["dynamic_points"]})'),
         ('keyframe update median / p95', f'{_fmt(m["keyframe_update_ms"]["median"], " ms")} / '
          f'{_fmt(m["keyframe_update_ms"]["p95"], " ms")}'),
