@@ -12,6 +12,7 @@ from semfeat_ros.model.errors import ModelConfigError, ModelInputError
 from semfeat_ros.model.losses import (
     MultiTaskLoss,
     descriptor_loss,
+    keypoint_cell_loss,
     keypoint_loss,
     sample_descriptors,
     segmentation_loss,
@@ -183,6 +184,76 @@ def test_keypoint_loss_is_weighted_bce_over_valid_pixels() -> None:
                                F.binary_cross_entropy_with_logits(logits, target))
     with pytest.raises(ModelInputError):
         keypoint_loss(logits, target[:, :1])
+
+
+def test_keypoint_cell_loss_is_a_softmax_over_each_keypoint_cell() -> None:
+    torch.manual_seed(0)
+    logits = torch.randn(1, 8, 16)  # two 8x8 cells side by side
+    target = torch.zeros(1, 8, 16)
+    target[0, 2, 3] = 1.0  # cell 0: one keypoint
+    valid = torch.ones(1, 8, 16, dtype=torch.bool)
+    valid[0, 0, 0] = False  # an invalid pixel leaves cell 0's softmax
+    # cell 1 has no keypoint: it takes no part
+    cell0 = logits[0, :, :8].reshape(-1)
+    keep = valid[0, :, :8].reshape(-1)
+    expected = -(cell0[2 * 8 + 3] - torch.logsumexp(cell0[keep], dim=0))
+    torch.testing.assert_close(keypoint_cell_loss(logits[:, None], target, valid), expected)
+    # two keypoints in one cell share the target evenly
+    target[0, 5, 6] = 1.0
+    two = 0.5 * (2 * torch.logsumexp(cell0[keep], 0) - cell0[2 * 8 + 3] - cell0[5 * 8 + 6])
+    torch.testing.assert_close(keypoint_cell_loss(logits, target, valid), two)
+    # the right peak costs less than a peak one pixel off
+    sharp = torch.full((1, 8, 8), -5.0)
+    off = sharp.clone()
+    sharp[0, 2, 3] = 5.0
+    off[0, 2, 4] = 5.0
+    t = torch.zeros(1, 8, 8)
+    t[0, 2, 3] = 1.0
+    assert keypoint_cell_loss(sharp, t) < 0.01 < keypoint_cell_loss(off, t)
+    assert keypoint_cell_loss(logits, torch.zeros(1, 8, 16)) == 0.0
+    with pytest.raises(ModelInputError):
+        keypoint_cell_loss(logits, target[:, :1])
+
+
+def test_kp_cell_weight_adds_the_cell_term_to_the_keypoint_loss() -> None:
+    torch.manual_seed(0)
+    pred = {'keypoint_logits': torch.randn(2, 1, 8, 8),
+            'descriptors': F.normalize(torch.randn(2, 4, 1, 1), dim=1),
+            'segmentation_logits': torch.randn(2, 19, 2, 2)}
+    target = torch.zeros(2, 8, 8)
+    target[0, 3, 4] = 1.0
+    batch = {'kp_target': target, 'kp_valid': torch.ones(2, 8, 8, dtype=torch.bool),
+             'label': torch.full((2, 8, 8), 255), 'points_a': torch.zeros(1, 1, 2),
+             'points_b': torch.zeros(1, 1, 2), 'corr_valid': torch.zeros(1, 1, dtype=torch.bool)}
+    _, base = MultiTaskLoss({'w_desc': 0.0, 'w_seg': 0.0})(pred, batch)
+    _, logs = MultiTaskLoss({'w_desc': 0.0, 'w_seg': 0.0, 'kp_cell_weight': 0.5})(pred, batch)
+    cell = float(keypoint_cell_loss(pred['keypoint_logits'], target, batch['kp_valid']))
+    assert logs['kp_cell'] == pytest.approx(cell)
+    assert logs['kp'] == pytest.approx(base['kp'] + 0.5 * cell)
+    assert 'kp_cell' not in base
+
+
+def test_pixel_branch_feeds_the_keypoint_head() -> None:
+    torch.manual_seed(0)
+    conf = {'encoder_channels': [8, 8, 16], 'decoder_channels': 16, 'kp_pixel_channels': 8,
+            'kp_head_layers': 2}
+    net = SemFeatNet(conf).train()
+    x = torch.randn(2, 3, 32, 32, requires_grad=True)
+    out = net(x)
+    out['keypoint_logits'].mean().backward()
+    assert net.kp_pixels is not None
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in net.kp_pixels.parameters())
+    assert len(net.kp_head) == 3  # two hidden layers + the 64-logit conv
+    assert SemFeatNet({'encoder_channels': [8, 8, 16], 'kp_pixel_channels': 0}).kp_pixels is None
+    net.eval()
+    with torch.inference_mode():
+        ref = net(x.detach())['heatmap']
+        got = fuse_batchnorm(net)(x.detach())['heatmap']
+    torch.testing.assert_close(got, ref, atol=1e-5, rtol=1e-4)
+    with pytest.raises(ModelConfigError, match='kp_pixel_channels'):
+        SemFeatNet({'kp_pixel_channels': -1})
+    with pytest.raises(ModelConfigError, match='kp_head_layers'):
+        SemFeatNet({'kp_head_layers': 0})
 
 
 def test_sample_descriptors_cell_centres() -> None:

@@ -23,6 +23,8 @@ default_loss_conf: dict[str, Any] = {
     'w_desc': 1.0,  # beta
     'w_seg': 0.5,  # gamma
     'kp_pos_weight': 20.0,  # BCE weight of positive (keypoint) pixels; ~1% of pixels are positive
+    'kp_cell_weight': 0.0,  # weight of the cell localisation term added to L_kp (0: BCE only, as
+    #                         the paper); see keypoint_cell_loss
     'desc_pos_margin': 1.0,  # m: positives are penalised by max(0, m - cos)
     'desc_neg_margin': 0.2,  # alpha (paper): negatives are penalised by max(0, cos - alpha)
     'desc_neg_radius': 8.0,  # px (input resolution): candidates closer than this are not negatives
@@ -63,6 +65,43 @@ def keypoint_loss(logits: torch.Tensor, target: torch.Tensor, valid: torch.Tenso
         return loss.mean()
     valid = valid.to(loss.dtype)
     return (loss * valid).sum() / valid.sum().clamp(min=1.0)
+
+
+def keypoint_cell_loss(logits: torch.Tensor, target: torch.Tensor,
+                       valid: torch.Tensor | None = None) -> torch.Tensor:
+    """Localisation term: cross-entropy of each keypoint cell's softmax over its 64 pixels.
+
+    Per-pixel BCE scores every pixel independently, so a peak one pixel off costs little more
+    than the right one. SuperPoint's detector loss is a softmax over the 64 pixels of each 8x8
+    cell instead; this term applies that softmax to the cells that hold at least one ground-truth
+    keypoint (and only valid pixels), with the target spread evenly over the cell's keypoints.
+    It sharpens where the peak sits inside a cell; cells without keypoints are left to the BCE.
+
+    Args:
+        logits: (B, 1, H, W) or (B, H, W) pre-sigmoid heatmap logits; H, W multiples of 8.
+        target: (B, H, W) float in [0, 1] (1 at ground-truth keypoints).
+        valid: optional (B, H, W) bool; invalid pixels take no part in a cell's softmax.
+    Returns:
+        scalar: mean over cells with a valid keypoint (0 if none).
+    """
+    if logits.ndim == 4:
+        logits = logits[:, 0]
+    if logits.shape != target.shape:
+        raise ModelInputError(f'keypoint_cell_loss: logits {tuple(logits.shape)} vs target '
+                              f'{tuple(target.shape)}')
+    cells = F.pixel_unshuffle(logits[:, None], KP_STRIDE)  # (B, 64, h, w)
+    tgt = F.pixel_unshuffle(target[:, None].to(logits.dtype), KP_STRIDE)
+    if valid is not None:
+        ok = F.pixel_unshuffle(valid[:, None].to(logits.dtype), KP_STRIDE) > 0
+        cells = cells.masked_fill(~ok, -1e4)
+        tgt = tgt * ok
+    mass = tgt.sum(dim=1)  # (B, h, w)
+    has = mass > 0
+    if not has.any():
+        return logits.sum() * 0.0
+    logp = F.log_softmax(cells.float(), dim=1)
+    ce = -(tgt * logp).sum(dim=1) / mass.clamp(min=1e-6)
+    return ce[has].mean()
 
 
 def sample_descriptors(desc: torch.Tensor, points: torch.Tensor,
@@ -261,6 +300,11 @@ class MultiTaskLoss:
         c = self.conf
         l_kp = keypoint_loss(pred['keypoint_logits'], batch['kp_target'], batch['kp_valid'],
                              c['kp_pos_weight'])
+        l_cell = None
+        if c['kp_cell_weight'] > 0:
+            l_cell = keypoint_cell_loss(pred['keypoint_logits'], batch['kp_target'],
+                                        batch['kp_valid'])
+            l_kp = l_kp + c['kp_cell_weight'] * l_cell
         desc = pred['descriptors']
         half = desc.shape[0] // 2
         l_desc, stats = descriptor_loss(
@@ -274,4 +318,6 @@ class MultiTaskLoss:
         logs = {'loss': float(total.detach()), 'kp': float(l_kp.detach()),
                 'desc': float(l_desc.detach()), 'seg': float(l_seg.detach()),
                 'pos_sim': float(stats['pos_sim']), 'neg_sim': float(stats['neg_sim'])}
+        if l_cell is not None:
+            logs['kp_cell'] = float(l_cell.detach())
         return total, logs

@@ -24,7 +24,10 @@ Design decisions the paper leaves open (documented here and in MODEL_CARD.md):
   is no dustbin channel: each pixel is an independent Bernoulli (the paper's per-pixel BCE).
   To localise keypoints inside the 8x8 cell the keypoint decoder also sees the stride-2 feature
   map F1 folded to stride 8 (space-to-depth + 1x1 conv, XFeat-style, implemented as one 4x4
-  stride-4 convolution, which is the same linear map).
+  stride-4 convolution, which is the same linear map) and, with ``kp_pixel_channels`` > 0, the
+  grey input itself folded to stride 8 (each cell's 64 pixels as channels, two 1x1 layers), as
+  XFeat's keypoint head does: the v1 network (without it) placed its peaks a median 1.8 px from
+  the repeated ones, against 1.0 px for ORB on the same rendered pairs.
 * CTMM output. The mixer output ``z~`` lies in the span of the three value vectors, so it cannot
   replace the decoder features. It is combined with them by ``fusion``: ``'concat'`` (default):
   ``ReLU(BN(Conv1x1([z, z~])))`` back to the decoder width; ``'add'``: ``z + Conv1x1(z~)``.
@@ -188,6 +191,10 @@ class SemFeatNet(nn.Module):
         'mixer_dim': 32,  # d, query/key/value width of the CTMM
         'mixer_fusion': 'concat',  # how z~ joins the decoder features: 'concat' or 'add'
         'kp_fine_channels': 32,  # channels of F1 (stride 2) folded to stride 8 for the kp head
+        'kp_pixel_channels': 32,  # > 0: the grey input's 8x8 cells (pixel-unshuffled to 64
+        #                           channels) through two 1x1 conv layers of this width also
+        #                           feed the kp head (XFeat-style); 0: off (weights v0/v1)
+        'kp_head_layers': 2,  # hidden 1x1 conv + BN + ReLU layers of the kp head (v0/v1: 1)
         'descriptor_dim': 64,  # D, length of the L2-normalised descriptors
         'seg_channels': 32,  # width of the segmentation decoder at stride 4
         'num_classes': 19,  # C, semantic classes (config/labels.yaml)
@@ -205,9 +212,13 @@ class SemFeatNet(nn.Module):
             raise ModelConfigError(
                 f'encoder_channels needs >= 3 positive widths (stride 8 must exist), got {enc}')
         for key in ('decoder_channels', 'task_dim', 'mixer_dim', 'kp_fine_channels',
-                    'descriptor_dim', 'seg_channels', 'num_classes', 'in_channels'):
+                    'descriptor_dim', 'seg_channels', 'num_classes', 'in_channels',
+                    'kp_head_layers'):
             if int(conf[key]) <= 0:
                 raise ModelConfigError(f'{key} must be a positive integer, got {conf[key]!r}')
+        if int(conf['kp_pixel_channels']) < 0:
+            raise ModelConfigError(
+                f'kp_pixel_channels must be >= 0, got {conf["kp_pixel_channels"]!r}')
         width = int(conf['decoder_channels'])
         self.stride = 2 ** len(enc)  # input sizes must be multiples of this (px)
 
@@ -226,10 +237,16 @@ class SemFeatNet(nn.Module):
         self.kp_fine = nn.Sequential(
             nn.Conv2d(enc[0], fine, fold, stride=fold, bias=False),
             nn.BatchNorm2d(fine), nn.ReLU(inplace=True))
+        pix = int(conf['kp_pixel_channels'])
+        # raw grey 8x8 cells (64 values) -> two 1x1 layers at stride 8: exact pixel positions
+        self.kp_pixels = nn.Sequential(
+            conv_bn_relu(KP_STRIDE * KP_STRIDE, pix, kernel=1),
+            conv_bn_relu(pix, pix, kernel=1)) if pix > 0 else None
         self.kp_decoder = conv_bn_relu(width, width)
-        self.kp_head = nn.Sequential(
-            conv_bn_relu(width + fine, width, kernel=1),
-            nn.Conv2d(width, KP_STRIDE * KP_STRIDE, 1))
+        hidden = [conv_bn_relu(width + fine + pix, width, kernel=1)]
+        hidden += [conv_bn_relu(width, width, kernel=1)
+                   for _ in range(int(conf['kp_head_layers']) - 1)]
+        self.kp_head = nn.Sequential(*hidden, nn.Conv2d(width, KP_STRIDE * KP_STRIDE, 1))
         self.desc_decoder = conv_bn_relu(width, width)
         self.desc_head = nn.Conv2d(width, int(conf['descriptor_dim']), 1)
         seg_c = int(conf['seg_channels'])
@@ -271,8 +288,11 @@ class SemFeatNet(nn.Module):
             attention.append(alpha)
 
         fine = self.kp_fine(feats[0])  # (B, kp_fine_channels, H/8, W/8)
-        kp = self.kp_decoder(mixed['kp'])
-        cells = self.kp_head(torch.cat([kp, fine], dim=1))  # (B, 64, H/8, W/8)
+        kp = [self.kp_decoder(mixed['kp']), fine]
+        if self.kp_pixels is not None:
+            grey = F.pixel_unshuffle(image.mean(dim=1, keepdim=True), KP_STRIDE)  # (B,64,h,w)
+            kp.append(self.kp_pixels(grey))  # (B, kp_pixel_channels, H/8, W/8)
+        cells = self.kp_head(torch.cat(kp, dim=1))  # (B, 64, H/8, W/8)
         logits = F.pixel_shuffle(cells, KP_STRIDE)  # (B, 1, H, W)
 
         desc = self.desc_head(self.desc_decoder(mixed['desc']))

@@ -546,6 +546,10 @@ def model_card(model: SemFeatNet, meta: dict[str, Any], conf: dict[str, Any],
     rep = fmt(v.get('val_repeatability'))
     peaks = ' / '.join(f'{v.get(f"val_peaks@{t:g}", float("nan")):.0f}'
                        for t in PEAK_THRESHOLDS)
+    pix = net.get('kp_pixel_channels', 0)
+    pixels = f', grey 8x8 input cells via {pix}-channel 1x1 layers' if pix else ''
+    kp_row = (f'64 cell logits at stride 8 (inputs: kp decoder, stride-2 features{pixels}) '
+              '-> depth-to-space -> sigmoid heatmap')
     return f"""# SemFeatNet weights (semfeat_ros)
 
 Multi-task network of *Semantic Aware Feature Extraction for Enhanced 3D Reconstruction*:
@@ -559,7 +563,7 @@ segmentation). Architecture and design decisions: `semfeat_ros/model/semfeatnet.
 | parameters | {n:,} ({n * 4 / 1e6:.2f} MB fp32) |
 | encoder widths | {net['encoder_channels']} (strides 2..{2 ** len(net['encoder_channels'])}) |
 | network input | {meta['input_size'][0]}x{meta['input_size'][1]} px for a full frame |
-| keypoints | 64 cell logits at stride 8 -> depth-to-space -> sigmoid heatmap |
+| keypoints | {kp_row} |
 | descriptors | stride 8, L2-normalised, sampled bilinearly at keypoints |
 | segmentation | stride 4 logits, classes of `config/labels.yaml` |
 | dropped by default | sky, car, pedestrian (extractor `drop_classes`, config/model.yaml) |
@@ -586,7 +590,8 @@ AdamW, lr {conf['lr']}, weight decay {conf['weight_decay']}, {t['steps']} steps 
 {conf['warmup_fraction']:.0%} of the steps with the first {conf['freeze_levels']} encoder
 block(s) frozen (the paper's 20 of 100 epochs), then joint fine-tuning with cosine decay. Loss
 weights: kp {conf['loss']['w_kp']}, desc {conf['loss']['w_desc']}, seg {conf['loss']['w_seg']};
-BCE positive weight {conf['loss']['kp_pos_weight']}; descriptor margins m =
+BCE positive weight {conf['loss']['kp_pos_weight']}, cell softmax CE weight
+{conf['loss'].get('kp_cell_weight', 0.0)}; descriptor margins m =
 {conf['loss']['desc_pos_margin']}, alpha = {conf['loss']['desc_neg_margin']}, negatives
 `{conf['loss']['desc_negatives']}` beyond {conf['loss']['desc_neg_radius']} px; segmentation CE
 class weights (median frequency / frequency) ** {conf['loss']['seg_class_balance']} clipped to

@@ -36,6 +36,11 @@ TRAIN_COMMAND = ('semfeat-train --config config/train.yaml --out out/train '
 """The command that (re)creates :data:`SHIPPED_WEIGHTS` (see MODEL_CARD.md)."""
 
 
+LEGACY_NETWORK_CONF: dict[str, Any] = {'kp_pixel_channels': 0, 'kp_head_layers': 1}
+"""Network keys added after weights v1, at the values that reproduce the older layout: a
+weights JSON without them was trained without them."""
+
+
 def resolve_weights_path(path: str | Path | None) -> Path:
     """The ``.safetensors`` file for ``path`` (a file, a directory holding ``semfeat.*``, or None
     for the shipped weights). Raises :class:`WeightsNotFoundError` if it does not exist."""
@@ -104,7 +109,7 @@ def load_weights(path: str | Path | None) -> tuple[SemFeatNet, dict[str, Any]]:
         if key not in config:
             raise WeightsFormatError(f'{jpath}: missing key {key!r}')
     try:
-        model = SemFeatNet(config['network'])
+        model = SemFeatNet({**LEGACY_NETWORK_CONF, **config['network']})
     except ValueError as exc:
         raise WeightsFormatError(f'{jpath}: bad network config ({exc})') from exc
     try:
