@@ -259,3 +259,18 @@ def test_load_model_yaml_errors(tmp_path: Path) -> None:
     assert load_model_yaml(p)['extractor']['max_keypoints'] == 50
     with pytest.raises(FileNotFoundError):
         load_model_yaml(tmp_path / 'missing.yaml')
+
+
+def test_weights_of_the_v1_layout_still_load(tmp_path: Path) -> None:
+    # a weights JSON written before kp_pixel_channels / kp_head_layers existed
+    import json
+
+    net = SemFeatNet({**SMALL, **weights_io.LEGACY_NETWORK_CONF}).eval()
+    path = weights_io.save_weights(net, tmp_path, {'class_names': NAMES,
+                                                   'input_size': [640, 512]})
+    cfg = json.loads(path.with_suffix('.json').read_text())
+    for key in weights_io.LEGACY_NETWORK_CONF:
+        del cfg['network'][key]
+    path.with_suffix('.json').write_text(json.dumps(cfg))
+    loaded, _ = weights_io.load_weights(path)
+    assert loaded.kp_pixels is None and weights_io.state_dict_allclose(net, loaded)
