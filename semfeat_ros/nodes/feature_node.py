@@ -70,8 +70,11 @@ class FeatureNodeConfig:
     mask_resolution: str = param('input', 'Size of the published mask: input image, network '
                                  'input, or the 1/4-resolution segmentation grid',
                                  choices=('input', 'network', 'seg'), read_only=True)
-    bf16: str = param('auto', 'bfloat16 autocast of the network: auto (on when the CPU has '
-                      'BF16 units: avx512_bf16 / amx_bf16), on, off',
+    # off by default: with the v2 weights bf16 moves keypoints inside their 8x8 cells (the
+    # keypoint head reads raw pixel values); on the demo bag the map's ATE went 0.11 -> 0.53 m
+    bf16: str = param('off', 'bfloat16 autocast of the network: auto (on when the CPU has '
+                      'BF16 units: avx512_bf16 / amx_bf16), on, off (default: v2 keypoints '
+                      'lose their sub-cell precision in bf16)',
                       choices=('auto', 'on', 'off'), read_only=True)
     max_image_pixels: int = param(50_000_000, 'Frames with more pixels are rejected',
                                   range=(1, 500_000_000), read_only=True)
