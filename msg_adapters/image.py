@@ -99,6 +99,22 @@ def check_size(width: int, height: int, max_pixels: int | None, what: str = 'Ima
             f'of {max_pixels} px (max_pixels)')
 
 
+def depth_to_metres(arr: np.ndarray, encoding: str) -> np.ndarray:
+    """(H, W) float32 range in metres of a depth image's pixels: ``16UC1`` / ``mono16`` in
+    millimetres (0 = no depth -> NaN) or ``32FC1`` / ``64FC1`` in metres.
+
+    Raises :class:`UnsupportedEncodingError` for any other encoding.
+    """
+    if encoding in ('16UC1', 'mono16'):
+        d = arr.astype(np.float32) / 1000.0
+        d[arr == 0] = np.nan
+        return d
+    if encoding in ('32FC1', '64FC1'):
+        return np.asarray(arr, dtype=np.float32)
+    raise UnsupportedEncodingError(
+        f'depth image encoding {encoding!r} not supported (32FC1 m or 16UC1 mm)')
+
+
 def image_to_numpy(msg: Any, *, max_pixels: int | None = DEFAULT_MAX_PIXELS,
                    copy: bool = False) -> np.ndarray:
     """Pixels of a ``sensor_msgs/Image`` (rclpy or rosbags) as a numpy array.

@@ -20,6 +20,7 @@ from msg_adapters import (
     StepMismatchError,
     UnsupportedEncodingError,
     WrongMessageTypeError,
+    depth_to_metres,
     image_to_numpy,
     numpy_to_image,
     stamp_to_ns,
@@ -359,3 +360,14 @@ def test_large_frame_is_fast() -> None:
         assert out.shape == (1536, 1920, 3)
         np.testing.assert_array_equal(out[::97, ::89], rgb[::97, ::89, ::-1])
     assert time.perf_counter() - t0 < 3.0
+
+
+def test_depth_to_metres_millimetres_metres_and_no_depth() -> None:
+    mm = np.array([[0, 1500], [65535, 250]], np.uint16)
+    d = depth_to_metres(mm, '16UC1')
+    assert d.dtype == np.float32 and np.isnan(d[0, 0])
+    np.testing.assert_allclose(d[~np.isnan(d)], [1.5, 65.535, 0.25], rtol=1e-6)
+    m = np.array([[np.inf, 2.5]], np.float64)
+    np.testing.assert_array_equal(depth_to_metres(m, '64FC1'), m.astype(np.float32))
+    with pytest.raises(UnsupportedEncodingError, match='rgb8'):
+        depth_to_metres(np.zeros((2, 2, 3), np.uint8), 'rgb8')

@@ -188,16 +188,6 @@ def _pose_matrix(msg: object, msgtype: str) -> np.ndarray:
     return T
 
 
-def _depth_to_m(arr: np.ndarray, encoding: str) -> np.ndarray:
-    if encoding in ('16UC1', 'mono16'):
-        d = arr.astype(np.float32) / 1000.0
-        d[arr == 0] = np.nan
-        return d
-    if encoding in ('32FC1', '64FC1'):
-        return np.asarray(arr, dtype=np.float32)
-    raise DatasetError(f'depth image encoding {encoding!r} not supported (32FC1 m or 16UC1 mm)')
-
-
 def _camera_from_yaml(path: Path | None, fov_deg: float) -> tuple[object, np.ndarray]:
     from semfeat_ros.camera import load_camera_yaml
 
@@ -295,7 +285,13 @@ class BagSequence:
                 if kind == 'image':
                     val = as_rgb8(arr, f'{conn.topic} frame {k}')
                 elif kind == 'depth':
-                    val = _depth_to_m(arr, str(msg.encoding))
+                    from msg_adapters.errors import UnsupportedEncodingError
+                    from msg_adapters.image import depth_to_metres
+
+                    try:
+                        val = depth_to_metres(arr, str(msg.encoding))
+                    except UnsupportedEncodingError as exc:
+                        raise DatasetError(f'{conn.topic}: {exc}') from exc
                 else:
                     val = np.asarray(arr, dtype=np.uint8)
                 parts.setdefault(k, {})[kind] = val

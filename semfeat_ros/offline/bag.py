@@ -219,22 +219,18 @@ def read_depth_views(source: BagSource, topic: str, gt: tuple[np.ndarray, np.nda
     :class:`semfeat_ros.offline.metrics.DepthView`, posed by the ground truth ``gt`` =
     ``(stamps_ns, T_map_base)`` at their stamps and ``T_base_cam`` (4, 4); ``camera`` is scaled
     to each image's size. Empty when the topic is absent."""
-    from msg_adapters import image_to_numpy
+    from msg_adapters import depth_to_metres, image_to_numpy, stamp_to_ns
     from semfeat_ros.offline.metrics import DepthView, associate
 
     if not source.has(topic, (IMAGE_TYPE,)) or len(gt[0]) == 0:
         return []
     views = []
     for m in source.messages([topic]):
-        stamp = m.msg.header.stamp.sec * 10**9 + m.msg.header.stamp.nanosec
         try:
-            depth = image_to_numpy(m.msg)
+            stamp = stamp_to_ns(m.msg)
+            depth = depth_to_metres(image_to_numpy(m.msg), str(m.msg.encoding))
         except MessageError as exc:
             raise BagFormatError(f'{topic}: bad range image at {m.log_ns} ns: {exc}') from exc
-        if depth.ndim != 2:
-            raise BagFormatError(f'{topic}: range image must have one channel, got '
-                                 f'{m.msg.encoding}')
-        depth = depth.astype(np.float32) * (1e-3 if depth.dtype == np.uint16 else 1.0)
         idx, poses = associate(np.array([stamp]), gt[0], gt[1])
         if len(idx) == 0:
             continue
