@@ -931,12 +931,17 @@ class Mapper:
         seen = [self._kf_alt[k] for k in lm.kf_ids if k < len(levels.flat) and levels.flat[k]]
         return float(max(seen)) if seen else float('nan')
 
+    def _storey(self, z: float, seen: float, levels: FloorLevels) -> float:
+        """Altitude (m) of the level of a point at altitude ``z`` (m) whose highest plateau
+        observer stood at ``seen`` (m; NaN: none): :func:`storey_altitude` (the street seen
+        over a roof deck's railing is the ground storey's; the observers decide within
+        ``floor_point_margin_m`` of a level's slab)."""
+        return float(storey_altitude(np.array([z]), np.array([seen]), levels.altitudes,
+                                     self.conf['floor_point_margin_m'])[0])
+
     def _floor_alt(self, lm: _Landmark, xyz: np.ndarray, levels: FloorLevels) -> float:
-        """Altitude (m) of the level of a landmark (:func:`storey_altitude`): the storey its
-        altitude lies in (the street seen over a roof deck's railing is the ground storey's),
-        the observers deciding within ``floor_point_margin_m`` of a level's slab."""
-        return float(storey_altitude(np.array([xyz[2]]), np.array([self._seen_alt(lm, levels)]),
-                                     levels.altitudes, self.conf['floor_point_margin_m'])[0])
+        """Altitude (m) of the level of landmark ``lm`` at ``xyz`` (:meth:`_storey`)."""
+        return self._storey(float(xyz[2]), self._seen_alt(lm, levels), levels)
 
     def _touch(self, lm: _Landmark, kid: int, ts: dict[int, float]) -> None:
         """Landmark seen at keyframe ``kid``: refresh its smoother timestamp."""
@@ -1208,9 +1213,8 @@ class Mapper:
         self._history = [(st, move(T @ self.T_cb) @ self.T_bc) for st, T in self._history]
         self._floors = None
         levels = self.floor_levels()
-        margin = self.conf['floor_point_margin_m']
-        self._voxels.transform(s, R, t, lambda p, a: int(levels.assign(storey_altitude(
-            p[2:3], np.array([a]), levels.altitudes, margin))[0]))
+        self._voxels.transform(s, R, t, lambda p, a: int(levels.assign(
+            np.array(self._storey(float(p[2]), a, levels)))))
         if self._link is not None:
             self._link['T_wc'] = move(self._link['T_wc'] @ self.T_cb) @ self.T_bc
         p = self._gnss_pending
@@ -1494,9 +1498,9 @@ class Mapper:
             self._final_xyz[lid] = np.array(xyz)
         if self._publishable(lm):
             levels = self.floor_levels()
-            self._voxels.insert(np.asarray(xyz), lm.label, lid, lm.n_obs,
-                                self._seen_alt(lm, levels),
-                                int(levels.assign(np.array(self._floor_alt(lm, xyz, levels)))))
+            seen = self._seen_alt(lm, levels)
+            self._voxels.insert(np.asarray(xyz), lm.label, lid, lm.n_obs, seen, int(
+                levels.assign(np.array(self._storey(float(xyz[2]), seen, levels)))))
 
     def _check_outliers(self, lids: list[int]) -> None:
         """Chi-square test of the bearing factors of the landmarks just observed; factors
