@@ -173,6 +173,13 @@ def path_from_numpy(stamps_ns: np.ndarray, poses: np.ndarray, *, frame_id: str, 
                                              cls, typestore=typestore), poses=items)
 
 
+def path_to_numpy(msg: Any) -> tuple[np.ndarray, np.ndarray]:
+    """``(stamps_ns (K,), poses (K, 4, 4))`` of a ``nav_msgs/Path`` (poses in its frame, m)."""
+    stamps = np.array([stamp_to_ns(p) for p in msg.poses], dtype=np.int64)
+    poses = np.array([pose_to_matrix(p.pose) for p in msg.poses], dtype=np.float64)
+    return stamps, poses.reshape(-1, 4, 4)
+
+
 @dataclass(frozen=True)
 class GnssSample:
     """A ``sensor_msgs/NavSatFix``: latitude/longitude (deg), altitude (m), ENU covariance

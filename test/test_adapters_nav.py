@@ -14,6 +14,7 @@ from msg_adapters import (
     odometry_from_numpy,
     odometry_to_numpy,
     path_from_numpy,
+    path_to_numpy,
     quaternion_to_matrix,
 )
 from msg_adapters.errors import NonFiniteError, ValueRangeError
@@ -88,6 +89,9 @@ def test_path(flavour: str) -> None:
     assert len(msg.poses) == 4 and msg.header.frame_id == 'map'
     assert msg.poses[2].pose.position.z == pytest.approx(0.4)
     assert msg.header.stamp.nanosec == 3 * 10**8
+    stamps, back = path_to_numpy(msg)
+    np.testing.assert_array_equal(stamps, np.arange(4) * 10**8)
+    np.testing.assert_allclose(back, poses, atol=1e-12)
     with pytest.raises(ValueRangeError):
         path_from_numpy(np.arange(3), poses, frame_id='map', msg_cls=cls)
 

@@ -25,12 +25,22 @@ from bagcraft import craft  # noqa: E402
 BAG = REPO / 'bags' / 'garage_ramp_seed0'
 pytestmark = pytest.mark.slow
 
-# Bounds against what the live pipeline measured on the shipped weights: the /semfeat/odometry
-# ATE was 0.26-0.50 m over five runs (offline, every frame: 0.38 m); the spread comes from the
-# frames the nodes drop under the load of five processes on 2 cores (more with other jobs).
-ATE_SIM3_MAX_M = 0.8
-AGREEMENT_MAX_M = 0.8  # live vs offline trajectory, RMSE after Sim(3) alignment
-ATE_DIFFERENCE_MAX_M = 0.4  # |ATE live - ATE offline|
+# The quality run replays at half speed: on 2 cores, five processes (three nodes, player,
+# recorder) and the fp32 network cannot hold the bag's 10 Hz, and at 1x the frames the nodes drop
+# (10-30 of 198) decide whether the map finds the second floor (2, 2, 1, 1 floors over four
+# demos). At 0.5x every frame is processed and the live result matches semfeat-map's. Dropping
+# under overload is tested at 2x below.
+QUALITY_RATE = 0.5
+# Bounds against what the live pipeline measured at 0.5x on the shipped weights (RESULTS.md):
+# /semfeat/odometry (per frame, causal) 0.39 m ATE (semfeat-map's online trajectory: 0.36 m);
+# the final /semfeat/path (smoothed keyframes) 0.095 m (semfeat-map: 0.111 m); 115 points on
+# 2 floors, 44 % of them within 0.5 m of the rendered surfaces (median error 0.59 m).
+ATE_SIM3_MAX_M = 0.8  # /semfeat/odometry
+PATH_ATE_SIM3_MAX_M = 0.3  # final /semfeat/path
+SURFACE_SHARE_MIN = 0.25  # cloud points within 0.5 m of the rendered surfaces
+SURFACE_MEDIAN_MAX_M = 1.0
+AGREEMENT_MAX_M = 0.3  # live vs offline keyframe trajectory, RMSE after Sim(3) alignment
+ATE_DIFFERENCE_MAX_M = 0.15  # |ATE live path - ATE offline|
 
 
 def _ground_truth(bag: Path) -> dict[str, np.ndarray]:
@@ -52,7 +62,7 @@ def _track_stamps(bag: Path) -> np.ndarray:
 @pytest.fixture(scope='module')
 def live(tmp_path_factory: pytest.TempPathFactory) -> dict:
     out = tmp_path_factory.mktemp('live')
-    run = run_pipeline(DemoConfig(bag=BAG, out=out, domain_id=97))
+    run = run_pipeline(DemoConfig(bag=BAG, out=out, domain_id=97, rate=QUALITY_RATE))
     return {'run': run, 'outputs': _read_outputs(out / 'output_bag'), 'out': out}
 
 
@@ -68,6 +78,7 @@ def test_clean_replay_diagnostics(live: dict) -> None:
     assert received >= 150  # 20 s at 10 Hz, minus discovery at the start
     # every frame accounted for (a snapshot may miss the one in inference and the one waiting)
     assert received - 2 <= processed + dropped <= received
+    assert dropped <= 0.05 * received  # at half speed the pipeline keeps up
     assert all(code == 0 for code in live['run']['exit_codes'].values())
     counts = live['outputs']['counts']
     assert counts.get('/semfeat/tracks', 0) >= processed - 2  # every processed frame tracked
@@ -80,23 +91,38 @@ def test_odometry_against_ground_truth(live: dict) -> None:
     assert len(o['stamps']) >= 30
     ev = evaluate_trajectory(o['stamps'], o['poses'], gt['stamps'], gt['poses'], metric=True)
     assert ev.metrics['ate_sim3_rmse_m'] < ATE_SIM3_MAX_M, ev.metrics
+    stamps, poses = o['path']
+    assert len(stamps) >= 30 and (np.diff(stamps) > 0).all()
+    ev = evaluate_trajectory(stamps, poses, gt['stamps'], gt['poses'], metric=True)
+    assert ev.metrics['ate_sim3_rmse_m'] < PATH_ATE_SIM3_MAX_M, ev.metrics
 
 
 def test_semantic_cloud_contract(live: dict) -> None:
-    # (points near the rendered surfaces, and >= 2 floors, are not asserted yet: offline, every
-    # frame, the v2 network's cloud is ~120 points, 39 % within 0.5 m of the rendered surfaces,
-    # on both levels; the live run drops frames and was not measured against them: RESULTS.md)
     cloud = live['outputs']['cloud']
-    assert cloud is not None and len(cloud.xyz) >= 5
+    assert cloud is not None and len(cloud.xyz) >= 30
     labels = load_labels()
     assert labels.static[cloud.labels].all()  # never sky, cars or pedestrians
     assert np.isfinite(cloud.xyz).all() and (cloud.n_obs >= 3).all()
+    assert len(np.unique(cloud.floors)) >= 2  # the deck and the covered level
+
+
+def test_semantic_cloud_near_rendered_surfaces(live: dict) -> None:
+    """The cloud, aligned by its own keyframe path's Sim(3), against the bag's range images."""
+    from semfeat_ros.tools.demo_report import _surfaces
+
+    gt = _ground_truth(BAG)
+    stamps, poses = live['outputs']['path']
+    ev = evaluate_trajectory(stamps, poses, gt['stamps'], gt['poses'], metric=True)
+    sf = _surfaces(BAG, live['outputs']['cloud'], ev.sim3, (gt['stamps'], gt['poses']))
+    assert sf is not None and sf['n_seen'] >= 0.9 * sf['n_points'], sf
+    assert sf['on_surface'] >= SURFACE_SHARE_MIN, sf
+    assert sf['median_error_m'] <= SURFACE_MEDIAN_MAX_M, sf
 
 
 def test_offline_map_agrees_with_live(live: dict) -> None:
-    """``semfeat-map``'s core on the same bag (every frame, no DDS) against the live run (the
-    frames the nodes kept): the two trajectories agree within AGREEMENT_MAX_M RMSE after
-    alignment, and their errors against the ground truth within ATE_DIFFERENCE_MAX_M."""
+    """``semfeat-map``'s core on the same bag (every frame, no DDS) against the live run: the
+    keyframe trajectories agree within AGREEMENT_MAX_M RMSE after alignment, and their errors
+    against the ground truth within ATE_DIFFERENCE_MAX_M."""
     from semfeat_ros.camera import load_camera_yaml
     from semfeat_ros.offline.mapping_run import MapConfig, run_mapping
 
@@ -104,11 +130,11 @@ def test_offline_map_agrees_with_live(live: dict) -> None:
     with BagSource(BAG) as src:
         run = run_mapping(src, MapConfig(T_base_cam=ext.T_base_cam), progress=False)
     off_stamps, off_poses = run.mapper.trajectory()
-    o = live['outputs']
-    agree = evaluate_trajectory(o['stamps'], o['poses'], off_stamps, off_poses, metric=True)
+    stamps, poses = live['outputs']['path']
+    agree = evaluate_trajectory(stamps, poses, off_stamps, off_poses, metric=True)
     assert agree.metrics['ate_sim3_rmse_m'] < AGREEMENT_MAX_M, agree.metrics
     gt = _ground_truth(BAG)
-    ate_live = evaluate_trajectory(o['stamps'], o['poses'], gt['stamps'], gt['poses'],
+    ate_live = evaluate_trajectory(stamps, poses, gt['stamps'], gt['poses'],
                                    metric=True).metrics['ate_sim3_rmse_m']
     ate_off = evaluate_trajectory(off_stamps, off_poses, gt['stamps'], gt['poses'],
                                   metric=True).metrics['ate_sim3_rmse_m']
@@ -124,6 +150,7 @@ def test_double_speed_drops_instead_of_lagging(tmp_path: Path, domain: int) -> N
     received, processed, dropped = (int(f[k]) for k in (
         'frames_received', 'frames_processed', 'frames_dropped'))
     assert received - 2 <= processed + dropped <= received
+    assert dropped <= 0.05 * received  # at half speed the pipeline keeps up
     # Bounded, never a growing queue: a frame waits at most for the one in inference, so the
     # stamp -> publish latency stays within about two processing times. Latency is measured on
     # the node's clock (sim time, running at the replay rate); processing time on the wall.

@@ -9,12 +9,13 @@ import numpy as np
 
 from msg_adapters import (
     odometry_to_numpy,
+    path_to_numpy,
     pose_stamped_to_numpy,
     semantic_cloud_from_msg,
     to_rgb_or_mono,
 )
 from semfeat_ros.labels import load_labels
-from semfeat_ros.offline.bag import BagSource
+from semfeat_ros.offline.bag import BagSource, read_depth_views
 from semfeat_ros.offline.errors import EvaluationError
 from semfeat_ros.offline.figures import plot_altitude, plot_trajectory_top
 from semfeat_ros.offline.metrics import (
@@ -22,13 +23,15 @@ from semfeat_ros.offline.metrics import (
     evaluate_trajectory,
     gt_levels,
     pitch_of,
+    surface_accuracy,
     travelled,
 )
 
 
 def _read_outputs(bag: Path) -> dict[str, Any]:
-    """Estimated poses, the last cloud and the message counts of the recorded output bag."""
-    stamps, poses, counts, cloud = [], [], {}, None
+    """Estimated poses (odometry), the last keyframe path and cloud, and the message counts of
+    the recorded output bag."""
+    stamps, poses, counts, cloud, path = [], [], {}, None, None
     with BagSource(bag) as src:
         topics = [t for t in ('/semfeat/odometry', '/semantic_cloud', '/semfeat/tracks',
                               '/semfeat/path', '/diagnostics') if src.has(t)]
@@ -40,8 +43,11 @@ def _read_outputs(bag: Path) -> dict[str, Any]:
                 poses.append(s.T)
             elif m.topic == '/semantic_cloud':
                 cloud = m.msg
+            elif m.topic == '/semfeat/path':
+                path = m.msg
     return {'stamps': np.array(stamps, np.int64), 'poses': np.array(poses).reshape(-1, 4, 4),
-            'counts': counts, 'cloud': semantic_cloud_from_msg(cloud) if cloud else None}
+            'counts': counts, 'cloud': semantic_cloud_from_msg(cloud) if cloud else None,
+            'path': path_to_numpy(path) if path else None}
 
 
 def _read_ground_truth(bag: Path) -> tuple[np.ndarray, np.ndarray, list[Any]]:
@@ -59,6 +65,23 @@ def _read_ground_truth(bag: Path) -> tuple[np.ndarray, np.ndarray, list[Any]]:
             elif m.topic.startswith('/camera/front/image_raw'):
                 frames.append(m.msg)
     return np.array(stamps, np.int64), np.array(poses).reshape(-1, 4, 4), frames
+
+
+def _surfaces(bag: Path, cloud: Any, sim3: Any, gt: tuple[np.ndarray, np.ndarray]
+              ) -> dict[str, Any] | None:
+    """Share of the live cloud's points (aligned by the live trajectory's ``sim3``) within
+    0.5 m of the bag's rendered range images; None when the bag has none."""
+    from semfeat_ros.camera import load_camera_yaml
+    from semfeat_ros.offline.mapping_run import MapConfig, read_cameras
+
+    _, ext = load_camera_yaml()
+    conf = MapConfig(T_base_cam=ext.T_base_cam)
+    with BagSource(bag) as src:
+        if not src.has(conf.topics.gt_depth) or not src.has(conf.topics.camera_info):
+            return None
+        camera = read_cameras(src, conf.topics.camera_info, conf.fov_deg).models[0]
+        views = read_depth_views(src, conf.topics.gt_depth, gt, ext.T_base_cam, camera)
+    return surface_accuracy(cloud, sim3, views) if views else None
 
 
 def _sample_figures(frames: list[Any], out: Path) -> dict[str, str]:
@@ -119,6 +142,7 @@ def write_report(bag: Path, out: Path, run: dict[str, Any]) -> dict[str, Any]:
             'latency_p50_s', 'latency_p95_s', 'compute_p50_s', 'compute_p95_s')}
     summary['nodes'] = nodes
     files: dict[str, str] = {}
+    ev = None
     if len(gt_stamps) and len(outputs['stamps']) >= 3:
         try:
             ev = evaluate_trajectory(outputs['stamps'], outputs['poses'], gt_stamps, gt_poses,
@@ -142,6 +166,13 @@ def write_report(bag: Path, out: Path, run: dict[str, Any]) -> dict[str, Any]:
                 'Altitude over distance (live pipeline)', levels.altitudes))
         except EvaluationError as exc:
             summary['trajectory'] = {'error': str(exc)}
+    path_ev = None
+    if len(gt_stamps) and outputs['path'] is not None and len(outputs['path'][0]) >= 3:
+        try:
+            path_ev = evaluate_trajectory(*outputs['path'], gt_stamps, gt_poses, metric=True)
+            summary['keyframe_path'] = path_ev.metrics
+        except EvaluationError as exc:
+            summary['keyframe_path'] = {'error': str(exc)}
     cloud = outputs['cloud']
     if cloud is not None:
         labels = load_labels()
@@ -150,6 +181,9 @@ def write_report(bag: Path, out: Path, run: dict[str, Any]) -> dict[str, Any]:
             'dynamic_points': int(labels.dynamic[cloud.labels].sum()),
             'classes': {labels.names[c]: int(n) for c, n in zip(
                 *np.unique(cloud.labels, return_counts=True))}}
+        if path_ev is not None and len(cloud.xyz):  # the cloud and the path: one estimate
+            summary['cloud']['surfaces'] = _surfaces(bag, cloud, path_ev.sim3,
+                                                     (gt_stamps, gt_poses))
     files.update(_sample_figures(frames, out))
     summary['files'] = files
     _print(summary)
@@ -169,18 +203,26 @@ def _print(s: dict[str, Any]) -> None:
     t = s.get('trajectory', {})
     if 'ate_sim3_rmse_m' in t:
         se3 = t.get('ate_se3_rmse_m')
-        print(f'  trajectory    ATE RMSE {t["ate_sim3_rmse_m"]:.3f} m (Sim(3)), '
+        print(f'  odometry      ATE RMSE {t["ate_sim3_rmse_m"]:.3f} m (Sim(3)), '
               f'{se3:.3f} m (SE(3), metric), scale {t["scale_sim3"]:.3f}, '
               f'{t["gt_length_m"]:.0f} m driven' if se3 is not None else
-              f'  trajectory    ATE RMSE {t["ate_sim3_rmse_m"]:.3f} m (Sim(3))')
+              f'  odometry      ATE RMSE {t["ate_sim3_rmse_m"]:.3f} m (Sim(3))')
     elif t:
         print(f'  trajectory    {t.get("error")}')
     else:
         print('  trajectory    no pose estimates: the mapper did not initialise on this run')
+    k = s.get('keyframe_path', {})
+    if 'ate_sim3_rmse_m' in k:
+        print(f'  keyframes     ATE RMSE {k["ate_sim3_rmse_m"]:.3f} m (Sim(3)) of the final '
+              f'/semfeat/path ({k["n_poses"]} keyframes, smoothed)')
     c = s.get('cloud')
     if c:
+        sf = c.get('surfaces') or {}
+        on = sf.get('on_surface')
         print(f'  map           {c["points"]} points, {c["floors"]} floors, '
-              f'{c["dynamic_points"]} dynamic')
+              f'{c["dynamic_points"]} dynamic'
+              + (f', {100 * on:.0f} % within {sf["tolerance_m"]} m of the rendered surfaces'
+                 if on is not None else ''))
     else:
         print('  map           no /semantic_cloud was published (no keyframes)')
     print(f'  wall time     {s["wall_time_s"]:.0f} s; files: '
