@@ -112,8 +112,10 @@ def test_recorded_tracks_give_the_same_map(orb_run: tuple[Path, dict, list],
             for t, conn, raw in sorted(rows, key=lambda r: r[0]):
                 writer.write(conn, t, raw)
     out2 = tmp_path / 'replay'
+    # the tracks are ORB's: the mapper is told their keypoint noise, as semfeat-map --frontend orb
     assert tool.cli([str(bag), '--out', str(out2), '--tracks-topic', '/semfeat/tracks',
-                     '--quiet', '--no-figures', '--start', '12']) == 0
+                     '--quiet', '--no-figures', '--start', '12',
+                     '--set', f'bearing_sigma_px={tool.OPENCV_BEARING_SIGMA_PX}']) == 0
     m2 = json.loads((out2 / 'metrics.json').read_text())
     assert m2['run']['frontend'] == 'tracks' and m2['frames_processed'] == 60
     s1, p1 = read_tum(out / 'trajectory.tum')

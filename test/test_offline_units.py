@@ -213,3 +213,17 @@ def test_surface_errors_against_a_rendered_wall() -> None:
                                 np.full(4, 3), load_labels().colors)
     acc = surface_accuracy(cloud, Similarity(1.0, np.eye(3), np.zeros(3)), [view, view])
     assert acc['n_seen'] == 3 and acc['on_surface'] == pytest.approx(2 / 3)
+
+
+def test_map_tool_keypoint_noise_per_front_end() -> None:
+    from semfeat_ros.nodes.mapping_node import MappingNodeConfig
+    from semfeat_ros.tools.map import OPENCV_BEARING_SIGMA_PX, MapToolConfig, build_map_config
+
+    net, _ = build_map_config(MapToolConfig(frontend='semfeat'))
+    assert net.mapper_conf['bearing_sigma_px'] == MappingNodeConfig().bearing_sigma_px
+    orb, notes = build_map_config(MapToolConfig(frontend='orb'))
+    assert orb.mapper_conf['bearing_sigma_px'] == OPENCV_BEARING_SIGMA_PX
+    assert any('bearing_sigma_px' in n for n in notes)
+    mine, _ = build_map_config(MapToolConfig(frontend='sift',
+                                             overrides={'bearing_sigma_px': 1.7}))
+    assert mine.mapper_conf['bearing_sigma_px'] == 1.7

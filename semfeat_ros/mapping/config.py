@@ -16,7 +16,8 @@ default_conf: dict[str, Any] = {
     'use_gnss': True,  # use GNSS fixes passed to update() (False: ignore them)
     'labels_path': None,  # labels.yaml path (None: the shipped config/labels.yaml)
     'camera_height_m': None,  # camera height above the ground (m); None: z of T_base_cam
-    'bearing_sigma_px': 1.0,  # keypoint noise (px), turned into rad by the focal length
+    'bearing_sigma_px': 2.5,  # keypoint noise (px), turned into rad by the focal length; sized
+    #                           for the network's keypoints (OpenCV detectors: about 1 px)
     'robust_kernel': 'huber',  # kernel of the bearing factors: 'huber' or 'cauchy'
     'robust_k': 1.345,  # kernel width in whitened units (sigmas)
     'outlier_chi2': 9.21,  # chi-square gate (2 dof, 99 %) on whitened bearing residuals

@@ -76,8 +76,8 @@ class MappingNodeConfig:
                                    range=(0.1, 45.0), read_only=True)
     kf_max_distance_m: float = param(1.0, 'Distance that makes a new keyframe (m)',
                                      range=(0.05, 100.0), read_only=True)
-    bearing_sigma_px: float = param(1.0, 'Keypoint noise (px)', range=(0.05, 20.0),
-                                    read_only=True)
+    bearing_sigma_px: float = param(2.5, 'Keypoint noise (px) of the front end',
+                                    range=(0.05, 20.0), read_only=True)
     voxel_size_m: float = param(0.1, 'Voxel size bounding the published map (m)',
                                 range=(0.01, 5.0), read_only=True)
     odom_sigma_per_m: float = param(0.02, 'Wheel odometry translation noise (m per m)',

@@ -39,6 +39,10 @@ from semfeat_ros.offline.report import FILES, output_paths, write_map_outputs
 
 PROG = 'semfeat-map'
 FRONTENDS = ('semfeat', 'orb', 'sift')
+#: Keypoint noise (px) the mapper assumes for the OpenCV front ends: their detectors localise to
+#: about 1 px, the network's keypoints (mapping_node's default, 2.5 px) to about 1.5-2 px with
+#: tails (docs/RESULTS.md, Mapping). ``--set bearing_sigma_px=...`` overrides both.
+OPENCV_BEARING_SIGMA_PX = 1.0
 
 
 @dataclass
@@ -104,6 +108,10 @@ def build_map_config(conf: MapToolConfig) -> tuple[MapConfig, list[str]]:
                            str(gpath)) if gpath else MappingNodeConfig())
     notes.append(f'mapping_node parameters: {gpath or "defaults"}')
     mapper_conf = mapping_conf(gparams)
+    if conf.frontend != 'semfeat':
+        mapper_conf['bearing_sigma_px'] = OPENCV_BEARING_SIGMA_PX
+        notes.append(f'{conf.frontend}: bearing_sigma_px {OPENCV_BEARING_SIGMA_PX} px (OpenCV '
+                     'keypoints)')
     for key, value in conf.overrides.items():
         if key not in default_conf:
             raise OfflineConfigError(f'--set {key}: not a mapping config key')
@@ -191,7 +199,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('bag', type=Path, help='input rosbag2 directory or .mcap/.db3 file')
     p.add_argument('--out', type=Path, required=True, help='output directory (created)')
     p.add_argument('--frontend', choices=FRONTENDS, default='semfeat',
-                   help='semfeat: the network (feature_node); orb / sift: OpenCV baselines')
+                   help='semfeat: the network (feature_node); orb / sift: OpenCV baselines '
+                        '(the mapper then assumes 1 px keypoint noise)')
     p.add_argument('--weights', default=None, help='network weights (.safetensors)')
     p.add_argument('--no-odometry', action='store_true', help='ignore wheel odometry')
     p.add_argument('--no-gnss', action='store_true', help='ignore GNSS fixes')
