@@ -41,6 +41,7 @@ SURFACE_SHARE_MIN = 0.2  # cloud points within 0.5 m of the rendered surfaces
 SURFACE_MEDIAN_MAX_M = 1.5
 AGREEMENT_MAX_M = 0.3  # live vs offline keyframe trajectory, RMSE after Sim(3) alignment
 ATE_DIFFERENCE_MAX_M = 0.15  # |ATE live path - ATE offline|
+FEATURE_AGREEMENT_PX = 0.05  # live tracked keypoint vs semfeat-features' keypoint, same frame
 
 
 def _ground_truth(bag: Path) -> dict[str, np.ndarray]:
@@ -139,6 +140,35 @@ def test_offline_map_agrees_with_live(live: dict) -> None:
     ate_off = evaluate_trajectory(off_stamps, off_poses, gt['stamps'], gt['poses'],
                                   metric=True).metrics['ate_sim3_rmse_m']
     assert abs(ate_live - ate_off) < ATE_DIFFERENCE_MAX_M, (ate_live, ate_off)
+
+
+def test_offline_features_agree_with_live(live: dict, tmp_path: Path) -> None:
+    """``semfeat-features`` (feature_node's front end, offline) on the same bag: every keypoint
+    the live matcher tracked is an offline keypoint of the same frame (FEATURE_AGREEMENT_PX),
+    with the same class."""
+    from msg_adapters import features_from_msg, tracks_from_msg
+    from semfeat_ros.tools import features as features_tool
+
+    assert features_tool.cli([str(BAG), '--out', str(tmp_path / 'features'), '--quiet']) == 0
+    with BagSource(tmp_path / 'features') as src:
+        offline = {f.stamp_ns: f for f in (features_from_msg(m.msg)
+                                           for m in src.messages(['/semfeat/features']))}
+    dist, same_label, frames = [], [], 0
+    with BagSource(live['out'] / 'output_bag') as src:
+        for m in src.messages(['/semfeat/tracks']):
+            t = tracks_from_msg(m.msg)
+            f = offline.get(t.stamp_ns)
+            if f is None or not len(t.uv):
+                continue
+            frames += 1
+            d = np.linalg.norm(t.uv[:, None, :] - f.keypoints[None], axis=2)
+            nearest = d.argmin(axis=1)
+            dist.append(d[np.arange(len(t.uv)), nearest])
+            same_label.append(f.labels[nearest] == t.labels)
+    assert frames >= 0.9 * len(offline), (frames, len(offline))
+    dist, same_label = np.concatenate(dist), np.concatenate(same_label)
+    assert np.mean(dist < FEATURE_AGREEMENT_PX) > 0.99, np.percentile(dist, [50, 99, 100])
+    assert same_label[dist < FEATURE_AGREEMENT_PX].mean() > 0.99
 
 
 @pytest.mark.parametrize('domain', [98])
