@@ -94,6 +94,7 @@ class Harness:
 
     def close(self) -> None:
         self.executor.shutdown()
+        self.thread.join(timeout=10.0)  # the spin thread must be out before rclpy shuts down
         self.node.destroy_node()
         self.probe.destroy_node()
 
