@@ -31,14 +31,17 @@ from semfeat_ros.mapping import (
 from semfeat_ros.mapping.benchmark import benchmark_update_time
 from semfeat_ros.mapping.benchmark import cli as benchmark_cli
 from semfeat_ros.mapping.geometry import rpy_matrix
-from semfeat_ros.mapping.synthetic import DriveConfig, SyntheticDrive, garage_drive
+from semfeat_ros.mapping.synthetic import (
+    MAPPER_SIGMA_PX,
+    DriveConfig,
+    SyntheticDrive,
+    garage_drive,
+)
 
 CAMERA = FisheyeCamera(640, 512, 186.7, 186.7, 320, 256, k=(0.02, -0.004, 0.0005, -0.0001),
                        fov_deg=190)
 T_BASE_CAM = Extrinsic((3.7, 0.0, 0.75), (0.0, 0.12, 0.0)).T_base_cam
-# The synthetic drive adds 0.5 px of keypoint noise (DriveConfig.pixel_sigma_px); the mapper is
-# told 1 px, not the 2.5 px sized for the network's keypoints.
-SYNTHETIC = {'bearing_sigma_px': 1.0}
+SYNTHETIC = {'bearing_sigma_px': MAPPER_SIGMA_PX}  # the synthetic tracks' noise model
 LABELS = load_labels()
 T_ENU_MAP = np.eye(4)
 T_ENU_MAP[:3, :3] = rpy_matrix(0.0, 0.0, 0.7)

@@ -22,6 +22,7 @@ from semfeat_ros.camera import Extrinsic, FisheyeCamera
 from semfeat_ros.mapping.evaluation import ate_rmse
 from semfeat_ros.mapping.mapper import Mapper
 from semfeat_ros.mapping.synthetic import (
+    MAPPER_SIGMA_PX,
     DriveConfig,
     SyntheticDrive,
     long_drive_segments,
@@ -53,18 +54,14 @@ class BenchmarkResult:
         return out
 
 
-#: Keypoint noise (px) the mapper is told on the synthetic drive, which adds 0.5 px
-#: (``DriveConfig.pixel_sigma_px``).
-SYNTHETIC_SIGMA_PX = 1.0
-
-
 def benchmark_update_time(n_keyframes: int = 600, *, odometry: bool = True, seed: int = 0,
                           conf: dict[str, Any] | None = None, progress: bool = True
                           ) -> BenchmarkResult:
     """Drive until ``n_keyframes`` keyframes exist; time every update (ms).
 
     ``conf`` overrides the mapper config; its keypoint noise defaults to
-    :data:`SYNTHETIC_SIGMA_PX`, matched to the synthetic tracks rather than to a front end.
+    :data:`~semfeat_ros.mapping.synthetic.MAPPER_SIGMA_PX` (the synthetic tracks', not a front
+    end's).
     """
     camera = FisheyeCamera(640, 512, 186.7, 186.7, 320, 256,
                            k=(0.02, -0.004, 0.0005, -0.0001), fov_deg=190)
@@ -74,7 +71,7 @@ def benchmark_update_time(n_keyframes: int = 600, *, odometry: bool = True, seed
     world = make_world(path, seed)
     drive = SyntheticDrive(world, path, camera, T_bc,
                            DriveConfig(odometry=odometry, seed=seed, frame_step_m=0.3))
-    mapper = Mapper(camera, T_bc, {'bearing_sigma_px': SYNTHETIC_SIGMA_PX, **(conf or {})})
+    mapper = Mapper(camera, T_bc, {'bearing_sigma_px': MAPPER_SIGMA_PX, **(conf or {})})
     kf, kf_ms, kf_cpu, frame_ms, gt = [], [], [], [], {}
     bar = tqdm(total=n_keyframes, disable=not progress, desc='keyframes', unit='kf')
     for frame in drive.frames():

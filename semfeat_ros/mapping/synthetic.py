@@ -205,6 +205,11 @@ class SyntheticFrame:
     gnss: GnssFix | None
 
 
+#: Keypoint noise (px) a mapper is told for the synthetic tracks (they carry
+#: ``DriveConfig.pixel_sigma_px``, 0.5 px, by default), not the one sized for the network.
+MAPPER_SIGMA_PX = 1.0
+
+
 @dataclass
 class DriveConfig:
     """Sensor simulation of :class:`SyntheticDrive` (units in the names)."""

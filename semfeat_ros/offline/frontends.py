@@ -83,6 +83,12 @@ class NetworkFrontend:
         return FrontendOutput(f.keypoints, f.descriptors, f.labels, f.scores, res.mask)
 
 
+#: Keypoint noise (px) a mapper should assume for OpenCV keypoints: their detectors localise to
+#: about 1 px, the network's keypoints (mapping_node's default, 2.5 px) to about 1.5-2 px with
+#: tails (docs/RESULTS.md, Mapping).
+OPENCV_BEARING_SIGMA_PX = 1.0
+
+
 class OpenCVFrontend:
     """ORB or SIFT keypoints (at most ``max_features``) inside the image circle.
 

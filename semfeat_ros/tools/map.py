@@ -33,16 +33,13 @@ from semfeat_ros.offline.config import (
     read_node_params,
 )
 from semfeat_ros.offline.errors import OfflineConfigError, OfflineError
+from semfeat_ros.offline.frontends import OPENCV_BEARING_SIGMA_PX
 from semfeat_ros.offline.mapping_run import LABEL_SOURCES, MapConfig, Topics, run_mapping
 from semfeat_ros.offline.paths import prepare_out_dir
 from semfeat_ros.offline.report import FILES, output_paths, write_map_outputs
 
 PROG = 'semfeat-map'
 FRONTENDS = ('semfeat', 'orb', 'sift')
-#: Keypoint noise (px) the mapper assumes for the OpenCV front ends: their detectors localise to
-#: about 1 px, the network's keypoints (mapping_node's default, 2.5 px) to about 1.5-2 px with
-#: tails (docs/RESULTS.md, Mapping). ``--set bearing_sigma_px=...`` overrides both.
-OPENCV_BEARING_SIGMA_PX = 1.0
 
 
 @dataclass
@@ -108,7 +105,7 @@ def build_map_config(conf: MapToolConfig) -> tuple[MapConfig, list[str]]:
                            str(gpath)) if gpath else MappingNodeConfig())
     notes.append(f'mapping_node parameters: {gpath or "defaults"}')
     mapper_conf = mapping_conf(gparams)
-    if conf.frontend != 'semfeat':
+    if conf.frontend != 'semfeat':  # --set bearing_sigma_px=... below still wins
         mapper_conf['bearing_sigma_px'] = OPENCV_BEARING_SIGMA_PX
         notes.append(f'{conf.frontend}: bearing_sigma_px {OPENCV_BEARING_SIGMA_PX} px (OpenCV '
                      'keypoints)')
