@@ -411,6 +411,35 @@ def test_level_prior_holds_the_decks_level_and_leaves_the_ramp_alone() -> None:
     assert abs(ramp[1.0] - 8.5) < 1.0, ramp  # the ramp keeps its slope
 
 
+def test_level_prior_decides_on_estimates_not_on_the_new_keyframes_prediction() -> None:
+    """The plateau check looks at the keyframes the smoother has estimated. The new keyframe's
+    pose is only a prediction (odometry on the last predicted pose, which after a ramp can
+    keep the ramp's pitch) and must not block the prior: on the long drive it did for 45
+    keyframes after the ramp's end, and the altitude sank 0.4 m."""
+    from semfeat_ros.mapping.mapper import _Keyframe
+
+    def base_pose(pitch_deg: float) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3] = rpy_matrix(0.0, np.radians(pitch_deg), 0.0)
+        return T @ T_BASE_CAM
+
+    def level_recs(pitches: list[float]) -> int:
+        m = Mapper(CAMERA, T_BASE_CAM, SYNTHETIC)
+        for kid, pitch in enumerate(pitches):
+            m._kf_T_wc.append(base_pose(pitch))
+            m._kfs[kid] = _Keyframe(kid, kid, 100)
+        recs: list = []
+        m._add_level_rec(len(pitches) - 1, recs)
+        return sum(r.kind == 'level' for r in recs)
+
+    delay = Mapper(CAMERA, T_BASE_CAM, SYNTHETIC).conf['level_delay_keyframes']
+    n = 2 * delay + 1  # keyframes k - delay .. k + delay, the last one new
+    assert level_recs([0.2] * n) == 1
+    assert level_recs([0.2] * (n - 1) + [6.0]) == 1  # a tilted prediction of the new one
+    assert level_recs([0.2] * (n - 2) + [6.0, 0.2]) == 0  # an estimated keyframe tilted
+    assert level_recs([0.2] * (n - 3) + [1.5, 0.2, 0.2]) == 0  # a changing tilt: not level
+
+
 def test_landmark_floor_is_its_storey_and_the_observers_decide_at_a_slab() -> None:
     from semfeat_ros.mapping.floors import FloorLevels
     from semfeat_ros.mapping.mapper import _Landmark

@@ -881,18 +881,20 @@ class Mapper:
     def _add_level_rec(self, kid: int, recs: list[_Rec]) -> None:
         """Level-floor prior on keyframe ``k = kid - level_delay_keyframes``, once the smoother
         has seen the keyframes after it. Every keyframe from ``level_delay`` before ``k`` to the
-        newest must be estimated below ``level_max_tilt_deg`` and tilted by less than
-        ``level_max_change_deg`` against ``k``: a plateau, not a ramp or its transition. The
-        tilt change between neighbours is observed well (odometry, tracks) even where the
-        absolute tilt lags; deciding on the predicted pose of a new keyframe alone would hold
-        a ramp level."""
+        last one the smoother has estimated must be below ``level_max_tilt_deg`` and tilted by
+        less than ``level_max_change_deg`` against ``k``: a plateau, not a ramp or its
+        transition. The tilt change between neighbours is observed well (odometry, tracks)
+        even where the absolute tilt lags; deciding on the predicted pose of a new keyframe
+        alone would hold a ramp level. That prediction (``kid``) is left out: it chains
+        odometry on the last prediction, keeps a ramp's pitch after the ramp when tracking
+        falls back to odometry, and blocked the prior there (long drive: 45 keyframes)."""
         c = self.conf
         delay = c['level_delay_keyframes']
         k = kid - delay
         if c['level_prior_sigma_deg'] <= 0 or k < 0 or k not in self._kfs:
             return
         first = max(0, k - delay)
-        R = np.array(self._kf_T_wc[first:kid + 1])[:, :3, :3]
+        R = np.array(self._kf_T_wc[first:kid])[:, :3, :3]
         up = R @ self._up_c  # (n, 3) base up axes in the map
         tilt = np.degrees(np.arccos(np.clip(up[:, 2], -1.0, 1.0)))
         change = np.degrees(np.arccos(np.clip(up @ up[k - first], -1.0, 1.0)))
