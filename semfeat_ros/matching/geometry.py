@@ -408,12 +408,16 @@ def decompose_essential(E: np.ndarray, b0: np.ndarray,
     return best[1], best[2], best[3]  # type: ignore[index]
 
 
-def _cross_t(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Cross products of column-stacked vectors: (3, N) x (3, N) (or (3,) broadcast) -> (3, N)."""
-    a = a.reshape(3, -1)
-    b = b.reshape(3, -1)
-    return np.stack([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2],
-                     a[0] * b[1] - a[1] * b[0]])
+def _cross_cols(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross products of column-stacked vectors: (3, N) x (3, N) -> (3, N)."""
+    out = np.empty((3, a.shape[1]))
+    np.multiply(a[1], b[2], out=out[0])
+    out[0] -= a[2] * b[1]
+    np.multiply(a[2], b[0], out=out[1])
+    out[1] -= a[0] * b[2]
+    np.multiply(a[0], b[1], out=out[2])
+    out[2] -= a[1] * b[0]
+    return out
 
 
 def _pose_residuals(R: np.ndarray, t: np.ndarray, b0t: np.ndarray, b1t: np.ndarray,
@@ -423,38 +427,46 @@ def _pose_residuals(R: np.ndarray, t: np.ndarray, b0t: np.ndarray, b1t: np.ndarr
     ``b0t, b1t`` are the bearings as (3, N) arrays. With ``jacobian`` also the (2N, 5)
     derivatives for the update ``R <- exp(w) R``, ``t <- normalize(t + alpha e1 + beta e2)``
     (``e1, e2`` from :func:`_tangent_basis`). The error of ``b1`` is ``num / |t x a|`` and that
-    of ``b0`` is ``num / |t x b1|`` with ``a = R b0`` and ``num = t . (a x b1)``.
+    of ``b0`` is ``num / |t x b1|`` with ``a = R b0`` and ``num = t . (a x b1)``. Products
+    with the fixed ``t`` are matrix products with ``[t]x`` (this runs in every LM step).
     """
     a = R @ b0t
-    axb = _cross_t(a, b1t)
+    axb = _cross_cols(a, b1t)
     num = t @ axb
-    c1 = _cross_t(t, a)
-    c0 = _cross_t(t, b1t)
-    n1 = np.maximum(np.sqrt((c1 * c1).sum(axis=0)), 1e-9)
-    n0 = np.maximum(np.sqrt((c0 * c0).sum(axis=0)), 1e-9)
+    St = skew(t)
+    c1 = St @ a  # t x a
+    c0 = St @ b1t  # t x b1
+    n1 = np.maximum(np.sqrt(np.einsum('in,in->n', c1, c1)), 1e-9)
+    n0 = np.maximum(np.sqrt(np.einsum('in,in->n', c0, c0)), 1e-9)
     r = np.concatenate([num / n1, num / n0])
     if not jacobian:
         return r, None
-    e1, e2 = _tangent_basis(t)
-    E12 = np.stack([e1, e2])  # (2, 3)
-    d_num_w = _cross_t(a, _cross_t(b1t, t))  # (3, N)
-    d_n1_w = _cross_t(a, _cross_t(c1, t)) / n1
+    E12 = np.stack(_tangent_basis(t))  # (2, 3)
+    d_num_w = _cross_cols(c0, a)  # a x (b1 x t)
+    d_n1_w = _cross_cols(St @ c1, a) / n1  # a x (c1 x t) / |t x a|
     d_num_t = E12 @ axb  # (2, N)
-    d_n1_t = E12 @ _cross_t(a, c1) / n1
-    d_n0_t = E12 @ _cross_t(b1t, c0) / n0
+    d_n1_t = E12 @ _cross_cols(a, c1) / n1
+    d_n0_t = E12 @ _cross_cols(b1t, c0) / n0
     k1 = num / n1 ** 2
     k0 = num / n0 ** 2
-    J1 = np.concatenate([d_num_w / n1 - k1 * d_n1_w, d_num_t / n1 - k1 * d_n1_t])
-    J0 = np.concatenate([d_num_w / n0, d_num_t / n0 - k0 * d_n0_t])
-    return r, np.concatenate([J1, J0], axis=1).T
+    n = a.shape[1]
+    J = np.empty((2 * n, 5))
+    J[:n, :3] = (d_num_w / n1 - k1 * d_n1_w).T
+    J[:n, 3:] = (d_num_t / n1 - k1 * d_n1_t).T
+    J[n:, :3] = (d_num_w / n0).T
+    J[n:, 3:] = (d_num_t / n0 - k0 * d_n0_t).T
+    return r, J
 
 
 def _tangent_basis(t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Two unit vectors spanning the plane orthogonal to the unit vector ``t``."""
-    a = np.array([1.0, 0.0, 0.0]) if abs(t[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    e1 = _cross_t(t, a)[:, 0]
-    e1 /= math.sqrt(float(e1 @ e1))
-    return e1, _cross_t(t, e1)[:, 0]
+    """Two unit vectors spanning the plane orthogonal to the unit vector ``t``: ``e1`` along
+    ``t x (1, 0, 0)`` (``t x (0, 1, 0)`` when ``t`` is near the x axis), ``e2 = t x e1``."""
+    tx, ty, tz = float(t[0]), float(t[1]), float(t[2])
+    ex, ey, ez = (0.0, tz, -ty) if abs(tx) < 0.9 else (-tz, 0.0, tx)
+    norm = math.sqrt(ex * ex + ey * ey + ez * ez)
+    ex, ey, ez = ex / norm, ey / norm, ez / norm
+    return (np.array([ex, ey, ez]),
+            np.array([ty * ez - tz * ey, tz * ex - tx * ez, tx * ey - ty * ex]))
 
 
 def refine_pose(R: np.ndarray, t: np.ndarray, b0: np.ndarray, b1: np.ndarray,
