@@ -172,7 +172,10 @@ def _nn_core(a: np.ndarray, b: np.ndarray, valid_min: float, mutual: bool,
         sim = a[s:s + _BLOCK_ROWS] @ bt
         if gate is not None:
             p0, p1, radius = gate
-            d2 = ((p0[s:s + _BLOCK_ROWS, None, :] - p1[None, :, :]) ** 2).sum(axis=2)
+            q = p0[s:s + _BLOCK_ROWS]
+            dx = q[:, 0, None] - p1[None, :, 0]  # per axis: no (rows, N1, 2) temporary
+            dy = q[:, 1, None] - p1[None, :, 1]
+            d2 = dx * dx + dy * dy
             sim[d2 > radius * radius] = -np.inf
         r = np.arange(sim.shape[0])
         j = np.argmax(sim, axis=1)
