@@ -1507,7 +1507,7 @@ class Mapper:
     def _check_outliers(self, lids: list[int]) -> None:
         """Chi-square test of the bearing factors of the landmarks just observed; factors
         failing it are removed at the next update, landmarks left with < 2 are killed."""
-        rows = []
+        rows, recs = [], []
         for lid in lids:
             lm = self._lms.get(lid)
             if lm is None or not lm.alive:
@@ -1516,18 +1516,21 @@ class Mapper:
                 rec = self._recs.get(rid)
                 if rec is not None and rec.kind == 'bearing':
                     rows.append((lid, rid, rec.kid))
+                    recs.append(rec)
         if not rows:
             return
         lid_a = np.array([r[0] for r in rows])
-        T = np.array([self._kf_T_wc[r[2]] for r in rows])
-        P = np.array([self._lms[r[0]].xyz for r in rows])
-        b = np.array([self._recs[r[1]].bearing for r in rows])
-        px = np.array([self._recs[r[1]].pixel for r in rows])
+        # poses and points once per keyframe / landmark, then gathered per observation
+        kids, kid_inv = np.unique(np.array([r[2] for r in rows]), return_inverse=True)
+        T = np.array([self._kf_T_wc[k] for k in kids.tolist()])[kid_inv]
+        uniq, inv = np.unique(lid_a, return_inverse=True)
+        P = np.array([self._lms[lid].xyz for lid in uniq.tolist()])[inv]
+        b = np.array([r.bearing for r in recs])
+        px = np.array([r.pixel for r in recs])
         p_c = np.einsum('nji,nj->ni', T[:, :3, :3], P - T[:, :3, 3])
         bad = angle_between(p_c, b) > self._gate
         proj, valid = self.camera.project(p_c)
         err_px = np.where(valid, np.linalg.norm(proj - px, axis=1), 1e6)
-        uniq, inv = np.unique(lid_a, return_inverse=True)
         n_good = np.bincount(inv, weights=~bad, minlength=len(uniq))
         sum_px = np.bincount(inv, weights=np.where(bad, 0.0, err_px), minlength=len(uniq))
         n_badv = np.bincount(inv, weights=bad, minlength=len(uniq)).astype(int)
