@@ -273,6 +273,9 @@ class BagSequence:
             kinds.update({c.id: 'labels' for c in self.label_conns})
         want = {'image', 'depth', 'labels'} if self.has_labels else {'image', 'depth'}
         nxt = 0
+        from msg_adapters.errors import UnsupportedEncodingError
+        from msg_adapters.image import depth_to_metres
+
         with open_bag(self.bag) as reader:
             conns = [c for c in reader.connections if c.id in kinds]
             for conn, _, raw in reader.messages(connections=conns):
@@ -285,9 +288,6 @@ class BagSequence:
                 if kind == 'image':
                     val = as_rgb8(arr, f'{conn.topic} frame {k}')
                 elif kind == 'depth':
-                    from msg_adapters.errors import UnsupportedEncodingError
-                    from msg_adapters.image import depth_to_metres
-
                     try:
                         val = depth_to_metres(arr, str(msg.encoding))
                     except UnsupportedEncodingError as exc:

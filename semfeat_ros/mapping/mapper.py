@@ -1507,7 +1507,7 @@ class Mapper:
     def _check_outliers(self, lids: list[int]) -> None:
         """Chi-square test of the bearing factors of the landmarks just observed; factors
         failing it are removed at the next update, landmarks left with < 2 are killed."""
-        rows, recs = [], []
+        recs = []  # the bearing factors of those landmarks (each knows its landmark, keyframe)
         for lid in lids:
             lm = self._lms.get(lid)
             if lm is None or not lm.alive:
@@ -1515,15 +1515,13 @@ class Mapper:
             for rid in lm.rids:
                 rec = self._recs.get(rid)
                 if rec is not None and rec.kind == 'bearing':
-                    rows.append((lid, rid, rec.kid))
                     recs.append(rec)
-        if not rows:
+        if not recs:
             return
-        lid_a = np.array([r[0] for r in rows])
         # poses and points once per keyframe / landmark, then gathered per observation
-        kids, kid_inv = np.unique(np.array([r[2] for r in rows]), return_inverse=True)
+        kids, kid_inv = np.unique(np.array([r.kid for r in recs]), return_inverse=True)
         T = np.array([self._kf_T_wc[k] for k in kids.tolist()])[kid_inv]
-        uniq, inv = np.unique(lid_a, return_inverse=True)
+        uniq, inv = np.unique(np.array([r.lid for r in recs]), return_inverse=True)
         P = np.array([self._lms[lid].xyz for lid in uniq.tolist()])[inv]
         b = np.array([r.bearing for r in recs])
         px = np.array([r.pixel for r in recs])
@@ -1546,8 +1544,8 @@ class Mapper:
                 self._kill_landmark(lid)
                 continue
             for r in np.flatnonzero((inv == j) & bad).tolist():
-                self._pending_remove.add(rows[r][1])
-                self._recs[rows[r][1]].removed = True
+                self._pending_remove.add(recs[r].rid)
+                recs[r].removed = True
                 lm.n_obs -= 1
 
     def _kill_landmark(self, lid: int) -> None:
