@@ -267,6 +267,29 @@ def test_voxel_map_bounds_points_and_keeps_floors_apart() -> None:
     assert vm.arrays()[2].min() >= 300  # the oldest voxels went first
 
 
+def test_voxel_map_keeps_each_points_anchor_observation() -> None:
+    vm = VoxelMap(voxel_size=0.5, max_points=100)
+    vm.insert(np.array([0.1, 0.1, 0.1]), 0, 1, 3, 0.0, 0, (1000, 10.0, 20.0))
+    vm.insert(np.array([0.2, 0.2, 0.2]), 0, 2, 5, 0.0, 0, (2000, 30.0, 40.0))  # replaces it
+    vm.insert(np.array([5.0, 0.0, 0.0]), 0, 3, 3, 0.0, 0)  # no anchor known
+    for i in range(2000):  # grow the arrays past their first capacity
+        vm.insert(np.array([10.0 + i, 0.0, 0.0]), 1, 100 + i, 3, 0.0, 0, (i, 1.0, 2.0))
+    vm.transform(2.0, np.eye(3), np.zeros(3), lambda xyz, alt: 0)
+    lid = vm.arrays()[2]
+    stamps, px = vm.anchors()
+    assert len(stamps) == len(lid) == len(px) == 100
+    vm2 = VoxelMap(voxel_size=0.5, max_points=10)
+    vm2.insert(np.array([0.1, 0.1, 0.1]), 0, 1, 3, 0.0, 0, (1000, 10.0, 20.0))
+    vm2.insert(np.array([0.2, 0.2, 0.2]), 0, 2, 5, 0.0, 0, (2000, 30.0, 40.0))
+    vm2.insert(np.array([5.0, 0.0, 0.0]), 0, 3, 3, 0.0, 0)
+    vm2.transform(2.0, np.eye(3), np.zeros(3), lambda xyz, alt: 0)  # moves, keeps anchors
+    by_lid = dict(zip(vm2.arrays()[2].tolist(), zip(*vm2.anchors())))
+    assert by_lid[2][0] == 2000 and by_lid[2][1].tolist() == [30.0, 40.0]
+    assert by_lid[3][0] == -1 and np.isnan(by_lid[3][1]).all()
+    assert sorted(by_lid) == [2, 3]
+    assert all(s == r - 100 for r, (s, _) in zip(lid.tolist(), zip(stamps, px)))
+
+
 # ------------------------------------------------------------------------------------------------
 # config and inputs
 # ------------------------------------------------------------------------------------------------

@@ -224,6 +224,22 @@ def test_map_points_match_ground_truth(camera_only: Run) -> None:
     assert len(np.unique(cloud.landmark_id)) == len(cloud)
 
 
+def test_every_map_point_knows_where_it_was_triangulated(camera_only: Run) -> None:
+    m = camera_only.mapper
+    cloud = m.cloud()
+    stamps, px = m.landmark_anchors(cloud.landmark_id)
+    assert np.isin(stamps, m.trajectory()[0]).all()  # a keyframe of this run, for every point
+    # the anchor pixel is where the (aligned) point projects in that keyframe's true pose
+    est, gt = camera_only.trajectory()
+    xyz = align_umeyama(est, gt, with_scale=True).apply(cloud.xyz)
+    T_cm = np.linalg.inv(np.array([camera_only.gt[s] for s in stamps]) @ T_BASE_CAM)
+    uv, ok = CAMERA.project(np.einsum('nij,nj->ni', T_cm[:, :3, :3], xyz) + T_cm[:, :3, 3])
+    assert ok.mean() > 0.99
+    assert np.median(np.linalg.norm(uv - px, axis=1)[ok]) < 2.0
+    stamp, pixel = m.landmark_anchors(np.array([10**9]))  # not a landmark of the map
+    assert stamp.tolist() == [-1] and np.isnan(pixel).all()
+
+
 def test_floors_detected_and_every_landmark_assigned(camera_only: Run) -> None:
     levels = camera_only.mapper.floor_levels()
     assert len(levels.altitudes) == 2

@@ -14,10 +14,12 @@ from semfeat_ros.offline.errors import EvaluationError, OfflineConfigError, Outp
 from semfeat_ros.offline.frontends import OpenCVFrontend, matcher_frame
 from semfeat_ros.offline.metrics import (
     DepthView,
+    anchor_points,
     associate,
     evaluate_trajectory,
     floor_accuracy,
     pitch_of,
+    point_errors,
     storey_of,
     surface_accuracy,
     surface_errors,
@@ -213,6 +215,87 @@ def test_surface_errors_against_a_rendered_wall() -> None:
                                 np.full(4, 3), load_labels().colors)
     acc = surface_accuracy(cloud, Similarity(1.0, np.eye(3), np.zeros(3)), [view, view])
     assert acc['n_seen'] == 3 and acc['on_surface'] == pytest.approx(2 / 3)
+
+
+def _wall_view(cam, x_cam: float, stamp: int, z_wall: float = 5.0) -> DepthView:
+    """Range image of a wall at z = ``z_wall`` m seen by a camera at (x_cam, 0, 0) looking +z;
+    left of x = 10.5 m a post stands 2 m in front of the wall (an occluding edge)."""
+    vv, uu = np.mgrid[0:cam.height, 0:cam.width]
+    rays = cam.unproject(np.stack([uu.ravel(), vv.ravel()], 1).astype(float), check=False)
+    rays = rays / np.linalg.norm(rays, axis=1, keepdims=True)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        t_wall = np.where(rays[:, 2] > 0.05, z_wall / rays[:, 2], np.inf)
+        t_post = np.where(rays[:, 2] > 0.05, (z_wall - 2.0) / rays[:, 2], np.inf)
+    post = (x_cam + t_post * rays[:, 0]) < 10.5
+    rng = np.where(post, t_post, t_wall)
+    T = np.eye(4)
+    T[:3, 3] = [x_cam, 0.0, 0.0]
+    return DepthView(rng.reshape(cam.height, cam.width).astype(np.float32), T, cam, stamp)
+
+
+def test_anchor_points_march_the_pixel_ray_through_the_nearest_range_image() -> None:
+    from semfeat_ros.camera import FisheyeCamera
+
+    cam = FisheyeCamera(64, 48, 20.0, 20.0, 31.5, 23.5, fov_deg=190)
+    t0 = 1_700_000_000_000_000_000
+    stamps_gt = t0 + np.arange(3, dtype=np.int64) * 100_000_000
+    poses = np.tile(np.eye(4), (3, 1, 1))
+    poses[:, 0, 3] = [11.0, 11.5, 12.0]  # base = camera frame here; moving along +x
+    views = [_wall_view(cam, 11.0, int(stamps_gt[0])), _wall_view(cam, 12.0, int(stamps_gt[2]))]
+    wall_pts = np.array([[11.0, 0.0, 5.0], [12.5, 1.0, 5.0], [13.0, -1.0, 5.0]])
+
+    def pixels(x_cam: float, pts: np.ndarray) -> np.ndarray:
+        return cam.project(pts - [x_cam, 0.0, 0.0])[0]
+
+    # the frame of the anchor has a range image: the rendered range at the pixel
+    got = anchor_points(np.full(3, stamps_gt[0]), pixels(11.0, wall_pts), cam,
+                        (stamps_gt, poses), np.eye(4), views)
+    assert np.allclose(got, wall_pts, atol=0.15)
+    # a frame without one: its ray is marched through the nearest range image
+    got = anchor_points(np.full(3, stamps_gt[1]), pixels(11.5, wall_pts), cam,
+                        (stamps_gt, poses), np.eye(4), views)
+    assert np.allclose(got, wall_pts, atol=0.15)
+    # seen from x = 12 m, hidden behind the post from x = 11 m: with only that range image the
+    # ray passes behind the post at its edge (a range jump), and no surface is invented
+    hidden = np.array([[10.0, 0.0, 5.0]])
+    got = anchor_points(np.array([stamps_gt[2]]), pixels(12.0, hidden), cam,
+                        (stamps_gt, poses), np.eye(4), views[:1])
+    assert np.isnan(got).all()
+    got = anchor_points(np.array([stamps_gt[2]]), pixels(12.0, hidden), cam,
+                        (stamps_gt, poses), np.eye(4), views)
+    assert np.allclose(got, hidden, atol=0.15)
+    # no ground-truth pose, no range image in time, sky, unknown anchor: NaN
+    far = stamps_gt[-1] + 10 * 10**9
+    sky = cam.project(np.array([[0.0, -1.0, -0.02]]))[0]  # 91 deg off-axis: nothing there
+    got = anchor_points(np.array([far, stamps_gt[0], -1]),
+                        np.vstack([pixels(11.0, wall_pts[:1]), sky, [np.nan, np.nan]]), cam,
+                        (stamps_gt, poses), np.eye(4), views)
+    assert np.isnan(got).all()
+    assert np.isnan(anchor_points(np.full(3, stamps_gt[0]), pixels(11.0, wall_pts), cam,
+                                  (stamps_gt, poses), np.eye(4), [])).all()
+
+
+def test_floor_accuracy_and_point_errors_against_true_positions() -> None:
+    labels = load_labels()
+    kf = np.array([[x, 0.0, -3.6 if x < 10 else 0.0] for x in range(20)], dtype=float)
+    est_levels = FloorLevels(np.array([-3.6, 0.0]), np.ones(20, bool))
+    shift = Similarity(1.0, np.eye(3), np.array([0.0, 0.0, 3.6]))
+    # a ceiling point of the lower storey (3.3 m), estimated 0.2 m too high: the aligned
+    # estimate puts it on the deck, its true position under the slab
+    xyz = np.array([[1, 2, -0.1], [2, 2, -0.1], [3, 2, 1.0]], dtype=float)
+    truth = np.array([[1, 2, 3.3], [2, 2, 3.6], [np.nan] * 3])
+    cloud = SemanticCloud.build(xyz, np.full(3, 8), np.array([0, 1, 1]), np.arange(3),
+                                np.full(3, 3), labels.colors)
+    aligned = floor_accuracy(cloud, shift, est_levels, kf, np.array([0.0, 3.6]))
+    true = floor_accuracy(cloud, shift, est_levels, kf, np.array([0.0, 3.6]), truth_xyz=truth)
+    assert aligned['accuracy'] == pytest.approx(2 / 3) and aligned['n_scored'] == 3
+    assert true['accuracy'] == 1.0 and true['n_scored'] == 2  # the NaN row is not scored
+    assert true['confusion'] == [[1, 0], [0, 1]]
+    err = point_errors(cloud, shift, truth)
+    assert err['n_scored'] == 2 and err['median_m'] == pytest.approx(0.15)
+    assert err['within_tolerance'] == 1.0
+    none = point_errors(cloud, shift, np.full((3, 3), np.nan))
+    assert none['n_scored'] == 0 and none['median_m'] is None
 
 
 def test_map_tool_keypoint_noise_per_front_end() -> None:

@@ -68,6 +68,8 @@ class VoxelMap:
         self._lid = np.zeros(self._cap, np.uint32)
         self._nobs = np.zeros(self._cap, np.int64)
         self._alt = np.zeros(self._cap)  # highest plateau pose that observed it (m; NaN: none)
+        self._anchor_ns = np.full(self._cap, -1, np.int64)  # keyframe stamp it was created at
+        self._anchor_px = np.full((self._cap, 2), np.nan)  # its pixel there (px)
         self._used = np.zeros(self._cap, bool)
         self._free: list[int] = []
         self._n = 0  # rows ever allocated
@@ -82,15 +84,18 @@ class VoxelMap:
 
     def _grow(self) -> None:
         self._cap *= 2
-        for name in ('_xyz', '_label', '_lid', '_nobs', '_alt', '_used'):
+        for name in ('_xyz', '_label', '_lid', '_nobs', '_alt', '_anchor_ns', '_anchor_px',
+                     '_used'):
             old = getattr(self, name)
             new = np.zeros((self._cap,) + old.shape[1:], old.dtype)
             new[: len(old)] = old
             setattr(self, name, new)
 
     def insert(self, xyz: np.ndarray, label: int, landmark_id: int, n_obs: int,
-               observer_alt: float, floor: int) -> None:
-        """Add a landmark (m); ``floor`` keeps points of different levels apart."""
+               observer_alt: float, floor: int,
+               anchor: tuple[int, float, float] = (-1, np.nan, np.nan)) -> None:
+        """Add a landmark (m); ``floor`` keeps points of different levels apart; ``anchor`` is
+        ``(stamp ns, u px, v px)`` of the observation it was triangulated at (evaluation)."""
         key = self._key(xyz, floor, label)
         row = self._index.get(key)
         if row is not None:
@@ -113,6 +118,8 @@ class VoxelMap:
         self._lid[row] = landmark_id
         self._nobs[row] = n_obs
         self._alt[row] = observer_alt
+        self._anchor_ns[row] = anchor[0]
+        self._anchor_px[row] = anchor[1:]
         self._used[row] = True
 
     def _evict_oldest(self) -> None:
@@ -131,14 +138,22 @@ class VoxelMap:
         return (self._xyz[: self._n][m], self._label[: self._n][m], self._lid[: self._n][m],
                 self._nobs[: self._n][m], self._alt[: self._n][m])
 
+    def anchors(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(stamp ns (N,), pixel (N, 2) px)`` of the stored landmarks' anchor observations, in
+        the order of :meth:`arrays` (stamp -1: unknown)."""
+        m = self._used[: self._n]
+        return self._anchor_ns[: self._n][m], self._anchor_px[: self._n][m]
+
     def transform(self, s: float, R: np.ndarray, t: np.ndarray,
                   floor_of: Callable[[np.ndarray, float], int]) -> None:
         """Apply ``x -> s R x + t`` to every point (and altitude); voxels are re-keyed by
         ``floor_of(xyz, observer_altitude)`` of the moved point."""
         xyz, label, lid, nobs, alt = self.arrays()
+        a_ns, a_px = self.anchors()
         xyz = s * xyz @ R.T + t
         alt = s * alt + t[2]
         self.__init__(self.voxel_size, self.max_points)
         for i in range(len(xyz)):
             self.insert(xyz[i], int(label[i]), int(lid[i]), int(nobs[i]), float(alt[i]),
-                        int(floor_of(xyz[i], float(alt[i]))))
+                        int(floor_of(xyz[i], float(alt[i]))),
+                        (int(a_ns[i]), float(a_px[i, 0]), float(a_px[i, 1])))

@@ -89,6 +89,8 @@ class _Landmark:
     last_kf: int = 0
     reproj_px: float = 0.0
     alive: bool = True
+    anchor: tuple[int, float, float] = (-1, np.nan, np.nan)  # (stamp ns, u px, v px): where it
+    #                                   was triangulated (kept for evaluation against truth)
 
 
 @dataclass(eq=False)
@@ -363,6 +365,24 @@ class Mapper:
             xyz[keep], lab[keep], levels.assign(alt),
             np.concatenate([lid_f, lid_w])[keep], np.concatenate([nobs_f, nobs_w])[keep],
             self.labels.colors)
+
+    def landmark_anchors(self, landmark_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Where the map's landmarks ``landmark_ids`` (N,) were triangulated: the keyframe
+        stamp (N,) ns and the pixel (N, 2) px of that observation (stamp -1: not in the map).
+        Lets an evaluation find each point's true position in a ground-truth range image."""
+        ids = np.asarray(landmark_ids, dtype=np.int64).reshape(-1)
+        stamps = np.full(len(ids), -1, np.int64)
+        px = np.full((len(ids), 2), np.nan)
+        _, _, lid_f, _, _ = self._voxels.arrays()
+        ns_f, px_f = self._voxels.anchors()
+        row_of = {int(lid): r for r, lid in enumerate(lid_f.tolist())}
+        for i, lid in enumerate(ids.tolist()):
+            lm = self._lms.get(lid)
+            if lm is not None:
+                stamps[i], px[i] = lm.anchor[0], lm.anchor[1:]
+            elif lid in row_of:
+                stamps[i], px[i] = ns_f[row_of[lid]], px_f[row_of[lid]]
+        return stamps, px
 
     def window(self) -> dict[str, int]:
         """Size of the smoother's window: keyframes, landmarks, factors; and the voxel map."""
@@ -973,6 +993,9 @@ class Mapper:
             self._observed(lm, k, b)
         if rays is None:
             rays = np.array([self._kf_T_wc[k][:3, :3] @ tr.kf_obs[k][0] for k in kids])
+        k_anchor = kid_now if kid_now in kids else kids[-1]
+        u, v = tr.kf_obs[k_anchor][1]
+        lm.anchor = (self._kf_stamps[k_anchor], float(u), float(v))
         lm.ray0 = rays[0]
         lm.max_par = float(angle_between(rays[:1], rays).max())
         self._lms[lid] = lm
@@ -1502,7 +1525,7 @@ class Mapper:
             levels = self.floor_levels()
             seen = self._seen_alt(lm, levels)
             self._voxels.insert(np.asarray(xyz), lm.label, lid, lm.n_obs, seen, int(
-                levels.assign(np.array(self._storey(float(xyz[2]), seen, levels)))))
+                levels.assign(np.array(self._storey(float(xyz[2]), seen, levels)))), lm.anchor)
 
     def _check_outliers(self, lids: list[int]) -> None:
         """Chi-square test of the bearing factors of the landmarks just observed; factors

@@ -236,5 +236,5 @@ def read_depth_views(source: BagSource, topic: str, gt: tuple[np.ndarray, np.nda
             continue
         h, w = depth.shape
         cam = camera if (camera.width, camera.height) == (w, h) else camera.scaled(w, h)
-        views.append(DepthView(depth, poses[0] @ np.asarray(T_base_cam, float), cam))
+        views.append(DepthView(depth, poses[0] @ np.asarray(T_base_cam, float), cam, stamp))
     return views

@@ -10,12 +10,19 @@ estimates outside the ground truth's time span are left out).
   (sloped ramp sections), RMSE and maximum of |aligned estimated z - ground-truth z|.
 * Floors: the ground-truth levels are the plateaus of the ground-truth altitude profile
   (:func:`semfeat_ros.mapping.detect_floors`, the mapper's own rule, on the ground-truth
-  trajectory). The ground-truth floor of a map point (aligned into the ground-truth frame) is
-  the level whose storey contains it: the highest level whose altitude is at most
-  ``floor_tolerance_m`` above the point (a ceiling point of a covered level hangs below the deck
-  slab and belongs to the level beneath it; points below the lowest level belong to it). The
+  trajectory). The ground-truth floor of a point is the level whose storey contains it: the
+  highest level whose altitude is at most ``floor_tolerance_m`` above the point (a ceiling point
+  of a covered level hangs below the deck slab and belongs to the level beneath it; points below
+  the lowest level belong to it). The point is the landmark's true position when the recording
+  has ground-truth range images: the rendered surface point at the pixel where the landmark was
+  triangulated (:func:`anchor_points`), independent of the estimate; otherwise (and in the
+  ``floors_aligned`` reading) its estimated position aligned into the ground-truth frame, which
+  also counts an altitude error of the estimate near a level boundary as a wrong floor. The
   estimated floor indices are translated into ground-truth levels through the keyframes: each
   estimated level maps to the ground-truth level most of its plateau keyframes stand on.
+* Point error: distance of a map point (aligned into the ground-truth frame) to its true
+  position, the rendered surface point at the pixel where it was triangulated (recordings with
+  ground-truth range images only; the along-ray depth error of a triangulation dominates it).
 * Surfaces: a map point (aligned into the ground-truth frame) lies on the rendered geometry when,
   in some ground-truth range image it projects into, its range along the ray differs from the
   rendered range by at most ``tolerance_m`` (the smallest difference over the images counts:
@@ -183,18 +190,22 @@ def storey_of(z: np.ndarray, levels: np.ndarray,
 
 def floor_accuracy(cloud: SemanticCloud, sim3: Similarity, est_levels: FloorLevels,
                    kf_positions: np.ndarray, gt_level_altitudes: np.ndarray,
-                   tolerance_m: float = FLOOR_TOLERANCE_M) -> dict[str, object]:
+                   tolerance_m: float = FLOOR_TOLERANCE_M,
+                   truth_xyz: np.ndarray | None = None) -> dict[str, object]:
     """Fraction of map points whose floor matches the ground truth (see the module doc).
 
     ``kf_positions`` (K, 3) are the estimated keyframe positions the ``est_levels`` were
     detected on (map frame); ``sim3`` maps the estimate into the ground-truth frame.
+    ``truth_xyz`` (N, 3): the points' true positions in the ground-truth frame (m; NaN rows are
+    not scored); without it the aligned estimated positions decide the true floor.
     """
     n_est = len(est_levels.altitudes)
     gt_alt = np.sort(np.asarray(gt_level_altitudes, dtype=np.float64))
     out: dict[str, object] = {
         'n_points': int(len(cloud)), 'gt_levels_m': [round(float(a), 3) for a in gt_alt],
         'est_levels_m': [round(float(a), 3) for a in est_levels.altitudes],
-        'tolerance_m': tolerance_m}
+        'tolerance_m': tolerance_m,
+        'truth': 'aligned estimate' if truth_xyz is None else 'rendered surface at the anchor'}
     if len(cloud) == 0 or n_est == 0 or len(gt_alt) == 0:
         out.update(accuracy=None, est_to_gt=[], confusion=[])
         return out
@@ -214,25 +225,117 @@ def floor_accuracy(cloud: SemanticCloud, sim3: Similarity, est_levels: FloorLeve
         else:
             centre = np.append(kf[:, :2].mean(axis=0), est_levels.altitudes[min(k, n_est - 1)])
             mapping[k] = int(np.abs(sim3.apply(centre[None])[0, 2] - gt_alt).argmin())
-    pts = sim3.apply(cloud.xyz.astype(np.float64))
-    truth = storey_of(pts[:, 2], gt_alt, tolerance_m)
-    pred = mapping[cloud.floor.astype(np.int64)]
+    if truth_xyz is None:
+        pts = sim3.apply(cloud.xyz.astype(np.float64))
+    else:
+        pts = np.asarray(truth_xyz, dtype=np.float64).reshape(len(cloud), 3)
+    scored = np.isfinite(pts[:, 2])
+    truth = storey_of(pts[scored, 2], gt_alt, tolerance_m)
+    pred = mapping[cloud.floor.astype(np.int64)][scored]
     conf = np.zeros((len(gt_alt), len(gt_alt)), np.int64)
     np.add.at(conf, (truth, np.minimum(pred, len(gt_alt) - 1)), 1)
-    out.update(accuracy=float(np.mean(pred == truth)), est_to_gt=mapping[:n_est].tolist(),
+    out.update(accuracy=float(np.mean(pred == truth)) if scored.any() else None,
+               n_scored=int(scored.sum()), est_to_gt=mapping[:n_est].tolist(),
                confusion=conf.tolist())
     return out
+
+
+def anchor_points(stamps: np.ndarray, pixels: np.ndarray, camera: object,
+                  gt: tuple[np.ndarray, np.ndarray], T_base_cam: np.ndarray,
+                  views: Sequence[DepthView], *, max_views: int = 2, max_dt_s: float = 1.0,
+                  max_range_m: float = 80.0, samples: int = 400) -> np.ndarray:
+    """True positions (N, 3) m, ground-truth map frame, of the surfaces seen at ``pixels``
+    (N, 2) px of ``camera`` in the frames ``stamps`` (N,) ns.
+
+    Each pixel's ray is posed by the ground truth ``gt`` = ``(stamps ns, T_map_base)`` and
+    ``T_base_cam`` (4, 4), and marched through the range image nearest in time (the next one
+    when that fails, at most ``max_views`` within ``max_dt_s``): the surface is where the ray
+    first passes behind the rendered range, with the rendered range continuous there (a jump
+    is an occluding edge in that view). With a range image of the pixel's own frame this is
+    the rendered range at the pixel. NaN rows: no ground-truth pose or usable range image,
+    outside the image circle, or no surface within ``max_range_m`` (sky).
+    """
+    px = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+    stamps = np.asarray(stamps, dtype=np.int64).reshape(-1)
+    out = np.full((len(px), 3), np.nan)
+    views = [v for v in views if v.stamp_ns >= 0]
+    if not len(px) or not views:
+        return out
+    v_st = np.array([v.stamp_ns for v in views], dtype=np.int64)
+    idx, T_mb = associate(stamps, gt[0], gt[1])
+    T_mc = T_mb @ np.asarray(T_base_cam, dtype=np.float64)
+    rays = np.full((len(px), 3), np.nan)
+    known = np.isfinite(px).all(axis=1)
+    rays[known] = camera.unproject(px[known], check=False)
+    s = np.geomspace(0.3, max_range_m, samples)
+    for i, T in zip(idx.tolist(), T_mc):
+        if not np.isfinite(rays[i]).all():
+            continue
+        P = T[:3, 3] + s[:, None] * (T[:3, :3] @ rays[i])
+        dt = np.abs(v_st - stamps[i])
+        for j in np.argsort(dt, kind='stable')[:max_views].tolist():
+            if dt[j] > max_dt_s * 1e9:
+                break
+            hit = _first_surface(P, s, views[j])
+            if hit is not None:
+                out[i] = hit
+                break
+    return out
+
+
+def point_errors(cloud: SemanticCloud, sim3: Similarity, truth_xyz: np.ndarray,
+                 tolerance_m: float = 0.5) -> dict[str, object]:
+    """Distance (m) of each map point, aligned into the ground-truth frame, to its true
+    position ``truth_xyz`` (N, 3) (:func:`anchor_points`; NaN rows are not scored)."""
+    truth = np.asarray(truth_xyz, dtype=np.float64).reshape(len(cloud), 3)
+    ok = np.isfinite(truth).all(axis=1)
+    err = np.linalg.norm(sim3.apply(cloud.xyz[ok].astype(np.float64)) - truth[ok], axis=1)
+    out: dict[str, object] = {'n_points': int(len(cloud)), 'n_scored': int(ok.sum()),
+                              'tolerance_m': tolerance_m}
+    if not ok.any():
+        out.update(median_m=None, p90_m=None, within_tolerance=None)
+        return out
+    out.update(median_m=float(np.median(err)), p90_m=float(np.percentile(err, 90)),
+               within_tolerance=float(np.mean(err <= tolerance_m)))
+    return out
+
+
+def _first_surface(P: np.ndarray, s: np.ndarray, view: DepthView) -> np.ndarray | None:
+    """Where the ray samples ``P`` (S, 3) m, at ranges ``s`` (S,) m from their origin, first
+    pass behind ``view``'s rendered range (linear interpolation); None when they never do or
+    the crossing is at a range discontinuity of the view."""
+    T_cm = np.linalg.inv(view.T_map_cam)
+    pc = P @ T_cm[:3, :3].T + T_cm[:3, 3]
+    uv, ok = view.camera.project(pc)
+    h, w = view.depth.shape
+    ui, vi = np.rint(uv[:, 0]).astype(np.int64), np.rint(uv[:, 1]).astype(np.int64)
+    ok &= (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
+    rendered = np.full(len(P), np.nan)
+    rendered[ok] = view.depth[vi[ok], ui[ok]]
+    f = rendered - np.linalg.norm(pc, axis=1)  # > 0: the sample is in front of the surface
+    f[~np.isfinite(f)] = np.nan
+    with np.errstate(invalid='ignore'):
+        cross = np.flatnonzero((f[:-1] > 0) & (f[1:] <= 0))
+    if not len(cross):
+        return None
+    k = int(cross[0])
+    step = s[k + 1] - s[k]
+    if f[k] - f[k + 1] > 2.0 * step + 0.3:  # the rendered range jumped: an occluding edge
+        return None
+    a = f[k] / (f[k] - f[k + 1])
+    return P[k] + a * (P[k + 1] - P[k])
 
 
 @dataclass(frozen=True)
 class DepthView:
     """A ground-truth range image: ``depth`` (H, W) m along the ray (inf/NaN: none), the
-    camera pose ``T_map_cam`` (4, 4) optical -> map (m) and the ``camera`` model it was
-    rendered with."""
+    camera pose ``T_map_cam`` (4, 4) optical -> map (m), the ``camera`` model it was
+    rendered with and its stamp (ns; -1: unknown)."""
 
     depth: np.ndarray
     T_map_cam: np.ndarray
     camera: object
+    stamp_ns: int = -1
 
 
 def surface_errors(xyz: np.ndarray, views: Sequence[DepthView]) -> np.ndarray:

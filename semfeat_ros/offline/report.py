@@ -24,10 +24,12 @@ from semfeat_ros.offline.metrics import (
     RAMP_PITCH_RAD,
     DepthView,
     TrajectoryEvaluation,
+    anchor_points,
     evaluate_trajectory,
     floor_accuracy,
     gt_levels,
     pitch_of,
+    point_errors,
     storey_of,
     surface_accuracy,
     timing_stats,
@@ -126,9 +128,16 @@ def evaluate_run(run: MapRun, gt_stamps: np.ndarray, gt_poses: np.ndarray,
         return out, None
     out['trajectory'] = ev.metrics
     cloud = mapper.cloud()
-    out['floors'] = floor_accuracy(cloud, ev.sim3, mapper.floor_levels(), poses[:, :3, 3],
-                                   levels_gt.altitudes)
+    aligned = floor_accuracy(cloud, ev.sim3, mapper.floor_levels(), poses[:, :3, 3],
+                             levels_gt.altitudes)
+    out['floors'] = aligned
     if depth_views:
+        truth = anchor_points(*mapper.landmark_anchors(cloud.landmark_id), run.camera,
+                              (gt_stamps, gt_poses), mapper.T_bc, depth_views)
+        out['floors'] = floor_accuracy(cloud, ev.sim3, mapper.floor_levels(),
+                                       poses[:, :3, 3], levels_gt.altitudes, truth_xyz=truth)
+        out['floors_aligned'] = aligned
+        out['point_errors'] = point_errors(cloud, ev.sim3, truth)
         out['surfaces'] = surface_accuracy(cloud, ev.sim3, depth_views)
     return out, ev
 
@@ -169,6 +178,8 @@ def write_map_outputs(run: MapRun, out_dir: Path, gt: tuple[np.ndarray, np.ndarr
     head = {
         **{k: traj.get(k) for k in HEADLINE_KEYS if k.startswith(('ate_', 'scale_', 'ramp_'))},
         'floor_accuracy': floors.get('accuracy'),
+        'floor_accuracy_aligned': metrics.get('floors_aligned', {}).get('accuracy'),
+        'cloud_point_error_median_m': metrics.get('point_errors', {}).get('median_m'),
         'cloud_on_surfaces': metrics.get('surfaces', {}).get('on_surface'),
         'dynamic_points': summary['dynamic_points'], 'cloud_points': summary['cloud_points'],
         'frames_read': summary['frames_read'], 'frames_processed': summary['frames_processed'],

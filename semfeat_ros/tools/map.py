@@ -175,7 +175,10 @@ def format_table(m: dict[str, Any]) -> str:
         ('ramp altitude RMSE / max (Sim(3))',
          f'{_fmt(m.get("ramp_altitude_rmse_sim3_m"), " m")} / '
          f'{_fmt(m.get("ramp_altitude_max_sim3_m"), " m")}'),
-        ('floor accuracy', _fmt(m.get('floor_accuracy'))),
+        ('floor accuracy (true / aligned positions)',
+         f'{_fmt(m.get("floor_accuracy"))} / {_fmt(m.get("floor_accuracy_aligned"))}'),
+        ('cloud point error median (true positions)',
+         _fmt(m.get('cloud_point_error_median_m'), ' m')),
         ('cloud points on rendered surfaces (0.5 m)', _fmt(m.get('cloud_on_surfaces'))),
         ('cloud points (dynamic)', f'{m["cloud_points"]} ({m["dynamic_points"]})'),
         ('keyframe update median / p95', f'{_fmt(m["keyframe_update_ms"]["median"], " ms")} / '
