@@ -274,7 +274,7 @@ def test_voxel_map_keeps_each_points_anchor_observation() -> None:
     vm.insert(np.array([5.0, 0.0, 0.0]), 0, 3, 3, 0.0, 0)  # no anchor known
     for i in range(2000):  # grow the arrays past their first capacity
         vm.insert(np.array([10.0 + i, 0.0, 0.0]), 1, 100 + i, 3, 0.0, 0, (i, 1.0, 2.0))
-    vm.transform(2.0, np.eye(3), np.zeros(3), lambda xyz, alt: 0)
+    vm.transform(2.0, np.eye(3), np.zeros(3), lambda xyz, alt, label: 0)
     lid = vm.arrays()[2]
     stamps, px = vm.anchors()
     assert len(stamps) == len(lid) == len(px) == 100
@@ -282,7 +282,7 @@ def test_voxel_map_keeps_each_points_anchor_observation() -> None:
     vm2.insert(np.array([0.1, 0.1, 0.1]), 0, 1, 3, 0.0, 0, (1000, 10.0, 20.0))
     vm2.insert(np.array([0.2, 0.2, 0.2]), 0, 2, 5, 0.0, 0, (2000, 30.0, 40.0))
     vm2.insert(np.array([5.0, 0.0, 0.0]), 0, 3, 3, 0.0, 0)
-    vm2.transform(2.0, np.eye(3), np.zeros(3), lambda xyz, alt: 0)  # moves, keeps anchors
+    vm2.transform(2.0, np.eye(3), np.zeros(3), lambda xyz, alt, label: 0)  # moves, keeps anchors
     by_lid = dict(zip(vm2.arrays()[2].tolist(), zip(*vm2.anchors())))
     assert by_lid[2][0] == 2000 and by_lid[2][1].tolist() == [30.0, 40.0]
     assert by_lid[3][0] == -1 and np.isnan(by_lid[3][1]).all()
@@ -306,6 +306,8 @@ def test_default_conf_is_valid_and_validated() -> None:
         merge_conf({'window_keyframes': 0})
     with pytest.raises(MapperConfigError, match='ground_labels'):
         merge_conf({'ground_labels': 'road'})
+    with pytest.raises(MapperConfigError, match='ceiling_labels'):
+        merge_conf({'ceiling_labels': [3]})
     with pytest.raises(MapperConfigError, match='lm_max_depth_m'):
         merge_conf({'lm_min_depth_m': 50.0})
 

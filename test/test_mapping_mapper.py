@@ -17,6 +17,7 @@ from semfeat_ros.labels import load_labels
 from semfeat_ros.mapping import (
     GnssFix,
     Mapper,
+    MapperConfigError,
     MapperInputError,
     MapperResult,
     StampOrderError,
@@ -464,8 +465,8 @@ def test_landmark_floor_is_its_storey_and_the_observers_decide_at_a_slab() -> No
     m._kf_alt = [0.0, 0.0, 3.6, 3.6]  # keyframes 0-1 on the ground level, 2-3 on the deck
     levels = FloorLevels(np.array([0.0, 3.6]), np.ones(4, bool))
 
-    def level(z: float, kids: list[int]) -> float:
-        lm = _Landmark(0, 0, 0, False, np.array([0.0, 0.0, z]), kf_ids=kids)
+    def level(z: float, kids: list[int], label: str = 'road') -> float:
+        lm = _Landmark(0, 0, LABELS.id_of(label), False, np.array([0.0, 0.0, z]), kf_ids=kids)
         return m._floor_alt(lm, lm.xyz, levels)
 
     assert level(0.1, [2, 3]) == 0.0  # the street seen over the deck's railing
@@ -475,3 +476,15 @@ def test_landmark_floor_is_its_storey_and_the_observers_decide_at_a_slab() -> No
     assert level(3.7, [0, 1, 2]) == 3.6  # seen from both: the deck
     assert level(6.0, [0]) == 3.6  # above the top level: the top storey
     assert level(-1.0, [2]) == 0.0
+    # ceilings and their lights belong to the storey they were seen from, however far up a
+    # depth error moved them; with no plateau observer their altitude decides
+    assert level(4.8, [0, 1], 'ceiling') == 0.0 and level(6.0, [1], 'light') == 0.0
+    assert level(4.8, [0, 1], 'wall') == 3.6
+    assert level(7.5, [2, 3], 'ceiling') == 3.6  # a canopy over the deck
+    assert level(4.8, [], 'ceiling') == 3.6
+    m2 = Mapper(CAMERA, T_BASE_CAM, {**SYNTHETIC, 'ceiling_labels': []})
+    m2._kf_alt = m._kf_alt
+    lm = _Landmark(0, 0, LABELS.id_of('ceiling'), False, np.array([0.0, 0.0, 4.8]), kf_ids=[0])
+    assert m2._floor_alt(lm, lm.xyz, levels) == 3.6
+    with pytest.raises(MapperConfigError, match='ceiling_labels'):
+        Mapper(CAMERA, T_BASE_CAM, {**SYNTHETIC, 'ceiling_labels': ['no_such_class']})

@@ -145,9 +145,9 @@ class VoxelMap:
         return self._anchor_ns[: self._n][m], self._anchor_px[: self._n][m]
 
     def transform(self, s: float, R: np.ndarray, t: np.ndarray,
-                  floor_of: Callable[[np.ndarray, float], int]) -> None:
+                  floor_of: Callable[[np.ndarray, float, int], int]) -> None:
         """Apply ``x -> s R x + t`` to every point (and altitude); voxels are re-keyed by
-        ``floor_of(xyz, observer_altitude)`` of the moved point."""
+        ``floor_of(xyz, observer_altitude, label)`` of the moved point."""
         xyz, label, lid, nobs, alt = self.arrays()
         a_ns, a_px = self.anchors()
         xyz = s * xyz @ R.T + t
@@ -155,5 +155,5 @@ class VoxelMap:
         self.__init__(self.voxel_size, self.max_points)
         for i in range(len(xyz)):
             self.insert(xyz[i], int(label[i]), int(lid[i]), int(nobs[i]), float(alt[i]),
-                        int(floor_of(xyz[i], float(alt[i]))),
+                        int(floor_of(xyz[i], float(alt[i]), int(label[i]))),
                         (int(a_ns[i]), float(a_px[i, 0]), float(a_px[i, 1])))

@@ -128,6 +128,10 @@ default_conf: dict[str, Any] = {
     'floor_slope_window_m': 4.0,  # travelled distance over which the slope is measured (m)
     'floor_min_plateau_m': 6.0,  # shortest plateau that makes a level (m travelled)
     'floor_merge_m': 1.2,  # plateaus closer in altitude than this are one level (m)
+    # classes hung under the slab above the vehicle (labels.yaml names): such a landmark takes
+    # the storey of the plateau keyframes that saw it, not of its altitude (a covered level's
+    # ceiling seen far ahead is often estimated metres too high)
+    'ceiling_labels': ['ceiling', 'light'],
     'floor_point_margin_m': 0.5,  # a landmark within this of a level's altitude (m) takes the
     #                               level of the plateau keyframes that saw it (a ceiling seen from
     #                               below is the lower storey, the deck seen from above the upper);
@@ -203,10 +207,9 @@ def merge_conf(conf: dict[str, Any] | None = None) -> dict[str, Any]:
     if not (isinstance(arm, list | tuple) and len(arm) == 3
             and all(isinstance(a, int | float) for a in arm)):
         raise MapperConfigError(f'gnss_lever_arm_m must be 3 numbers (m), got {arm!r}')
-    if not (isinstance(out['ground_labels'], list | tuple)
-            and all(isinstance(n, str) for n in out['ground_labels'])):
-        raise MapperConfigError(
-            f'ground_labels must be a list of class names, got {out["ground_labels"]!r}')
+    for key in ('ground_labels', 'ceiling_labels'):
+        if not (isinstance(out[key], list | tuple) and all(isinstance(n, str) for n in out[key])):
+            raise MapperConfigError(f'{key} must be a list of class names, got {out[key]!r}')
     for key in ('use_odometry', 'use_gnss', 'init_require_metric', 'keep_full_graph',
                 'init_from_odometry'):
         if not isinstance(out[key], bool):

@@ -28,7 +28,7 @@ class FloorLevels:
 
 
 def storey_altitude(z: np.ndarray, seen: np.ndarray, altitudes: np.ndarray,
-                    margin: float) -> np.ndarray:
+                    margin: float, hangs: np.ndarray | None = None) -> np.ndarray:
     """Altitude (m) of the level each point belongs to: the storey its altitude lies in.
 
     Args:
@@ -36,6 +36,10 @@ def storey_altitude(z: np.ndarray, seen: np.ndarray, altitudes: np.ndarray,
         seen: (N,) highest altitude of a plateau pose that observed each point (m; NaN: none).
         altitudes: (L,) level altitudes (m), ascending.
         margin: half-thickness of a level's slab (m).
+        hangs: optional (N,) bool, points of classes hung under the slab above their observers
+            (ceilings, ceiling lights): they belong to the storey of their highest plateau
+            observer whatever their altitude (depth errors of points seen ahead with little
+            parallax move them up by metres, above the next level).
     Returns:
         (N,) the altitude of the highest level below each point. Within ``margin`` of a level
         above the lowest (its slab: the deck on top, the lower storey's ceiling underneath)
@@ -53,6 +57,10 @@ def storey_altitude(z: np.ndarray, seen: np.ndarray, altitudes: np.ndarray,
     slab = np.abs(alts[j] - z) <= margin
     from_below = (j > 0) & (seen < alts[j] - margin)  # NaN compares False: the slab's level
     out[slab] = np.where(from_below[slab], alts[np.maximum(j[slab] - 1, 0)], alts[j[slab]])
+    if hangs is not None:
+        h = np.asarray(hangs, dtype=bool).reshape(-1) & np.isfinite(seen)
+        level = np.maximum(np.searchsorted(alts, seen[h] + margin, side='right') - 1, 0)
+        out[h] = alts[level]
     return out
 
 

@@ -171,6 +171,12 @@ class Mapper:
         self._static[:n_cls] = self.labels.static & ~self.labels.dynamic
         self._dynamic = np.zeros(256, bool)
         self._dynamic[:n_cls] = self.labels.dynamic
+        self._hangs = np.zeros(256, bool)
+        for name in self.conf['ceiling_labels']:
+            try:
+                self._hangs[self.labels.id_of(name)] = True
+            except KeyError as exc:
+                raise MapperConfigError(f'ceiling_labels: {exc.args[0]}') from None
         self._ground = np.zeros(256, bool)
         for name in self.conf['ground_labels']:
             try:
@@ -360,7 +366,7 @@ class Mapper:
         keep = self._static[lab]
         # floors from the current levels (they grow as the drive finds new ones)
         alt = storey_altitude(xyz[:, 2], np.concatenate([alt_f, alt_w]), levels.altitudes,
-                              self.conf['floor_point_margin_m'])[keep]
+                              self.conf['floor_point_margin_m'], self._hangs[lab])[keep]
         return SemanticCloud.build(
             xyz[keep], lab[keep], levels.assign(alt),
             np.concatenate([lid_f, lid_w])[keep], np.concatenate([nobs_f, nobs_w])[keep],
@@ -953,17 +959,18 @@ class Mapper:
         seen = [self._kf_alt[k] for k in lm.kf_ids if k < len(levels.flat) and levels.flat[k]]
         return float(max(seen)) if seen else float('nan')
 
-    def _storey(self, z: float, seen: float, levels: FloorLevels) -> float:
-        """Altitude (m) of the level of a point at altitude ``z`` (m) whose highest plateau
-        observer stood at ``seen`` (m; NaN: none): :func:`storey_altitude` (the street seen
-        over a roof deck's railing is the ground storey's; the observers decide within
-        ``floor_point_margin_m`` of a level's slab)."""
+    def _storey(self, z: float, seen: float, levels: FloorLevels, label: int) -> float:
+        """Altitude (m) of the level of a point of class ``label`` at altitude ``z`` (m) whose
+        highest plateau observer stood at ``seen`` (m; NaN: none): :func:`storey_altitude` (the
+        street seen over a roof deck's railing is the ground storey's; the observers decide
+        within ``floor_point_margin_m`` of a level's slab, and always for ``ceiling_labels``)."""
         return float(storey_altitude(np.array([z]), np.array([seen]), levels.altitudes,
-                                     self.conf['floor_point_margin_m'])[0])
+                                     self.conf['floor_point_margin_m'],
+                                     self._hangs[[label]])[0])
 
     def _floor_alt(self, lm: _Landmark, xyz: np.ndarray, levels: FloorLevels) -> float:
         """Altitude (m) of the level of landmark ``lm`` at ``xyz`` (:meth:`_storey`)."""
-        return self._storey(float(xyz[2]), self._seen_alt(lm, levels), levels)
+        return self._storey(float(xyz[2]), self._seen_alt(lm, levels), levels, lm.label)
 
     def _touch(self, lm: _Landmark, kid: int, ts: dict[int, float]) -> None:
         """Landmark seen at keyframe ``kid``: refresh its smoother timestamp."""
@@ -1238,8 +1245,8 @@ class Mapper:
         self._history = [(st, move(T @ self.T_cb) @ self.T_bc) for st, T in self._history]
         self._floors = None
         levels = self.floor_levels()
-        self._voxels.transform(s, R, t, lambda p, a: int(levels.assign(
-            np.array(self._storey(float(p[2]), a, levels)))))
+        self._voxels.transform(s, R, t, lambda p, a, lab: int(levels.assign(
+            np.array(self._storey(float(p[2]), a, levels, lab)))))
         if self._link is not None:
             self._link['T_wc'] = move(self._link['T_wc'] @ self.T_cb) @ self.T_bc
         p = self._gnss_pending
@@ -1525,7 +1532,8 @@ class Mapper:
             levels = self.floor_levels()
             seen = self._seen_alt(lm, levels)
             self._voxels.insert(np.asarray(xyz), lm.label, lid, lm.n_obs, seen, int(
-                levels.assign(np.array(self._storey(float(xyz[2]), seen, levels)))), lm.anchor)
+                levels.assign(np.array(self._storey(float(xyz[2]), seen, levels, lm.label)))),
+                lm.anchor)
 
     def _check_outliers(self, lids: list[int]) -> None:
         """Chi-square test of the bearing factors of the landmarks just observed; factors
