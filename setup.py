@@ -18,6 +18,7 @@ CONSOLE_SCRIPTS = [
     'semfeat-play = semfeat_ros.tools.play:cli',
     'semfeat-record = semfeat_ros.tools.record:cli',
     'semfeat-train = semfeat_ros.tools.train:cli',
+    'semfeat-calibrate-seg = semfeat_ros.tools.calibrate_seg:cli',
     'semfeat-features = semfeat_ros.tools.features:cli',
     'semfeat-map = semfeat_ros.tools.map:cli',
     'semfeat-colmap-peer = semfeat_ros.tools.colmap_peer:cli',
