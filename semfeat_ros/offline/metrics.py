@@ -304,15 +304,8 @@ def _first_surface(P: np.ndarray, s: np.ndarray, view: DepthView) -> np.ndarray 
     """Where the ray samples ``P`` (S, 3) m, at ranges ``s`` (S,) m from their origin, first
     pass behind ``view``'s rendered range (linear interpolation); None when they never do or
     the crossing is at a range discontinuity of the view."""
-    T_cm = np.linalg.inv(view.T_map_cam)
-    pc = P @ T_cm[:3, :3].T + T_cm[:3, 3]
-    uv, ok = view.camera.project(pc)
-    h, w = view.depth.shape
-    ui, vi = np.rint(uv[:, 0]).astype(np.int64), np.rint(uv[:, 1]).astype(np.int64)
-    ok &= (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
-    rendered = np.full(len(P), np.nan)
-    rendered[ok] = view.depth[vi[ok], ui[ok]]
-    f = rendered - np.linalg.norm(pc, axis=1)  # > 0: the sample is in front of the surface
+    rendered, dist = _rendered_range(P, view)
+    f = rendered - dist  # > 0: the sample is in front of the surface
     f[~np.isfinite(f)] = np.nan
     with np.errstate(invalid='ignore'):
         cross = np.flatnonzero((f[:-1] > 0) & (f[1:] <= 0))
@@ -338,23 +331,31 @@ class DepthView:
     stamp_ns: int = -1
 
 
+def _rendered_range(pts: np.ndarray, view: DepthView) -> tuple[np.ndarray, np.ndarray]:
+    """``(rendered range, range)`` (N,) m of map points ``pts`` (N, 3) in ``view``: the range
+    image at the nearest pixel each projects to (NaN outside the image or field of view) and
+    the point's own distance from the camera."""
+    T_cm = np.linalg.inv(view.T_map_cam)
+    pc = pts @ T_cm[:3, :3].T + T_cm[:3, 3]
+    uv, ok = view.camera.project(pc)
+    h, w = view.depth.shape
+    ui, vi = np.rint(uv[:, 0]).astype(np.int64), np.rint(uv[:, 1]).astype(np.int64)
+    ok &= (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
+    rendered = np.full(len(pts), np.nan)
+    rendered[ok] = view.depth[vi[ok], ui[ok]]
+    return rendered, np.linalg.norm(pc, axis=1)
+
+
 def surface_errors(xyz: np.ndarray, views: Sequence[DepthView]) -> np.ndarray:
     """(N,) smallest |range - rendered range| (m) of points ``xyz`` (N, 3) (ground-truth map
     frame) over the views they project into; NaN for a point no view sees."""
     pts = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
     best = np.full(len(pts), np.inf)
     for v in views:
-        T_cm = np.linalg.inv(v.T_map_cam)
-        pc = pts @ T_cm[:3, :3].T + T_cm[:3, 3]
-        uv, ok = v.camera.project(pc)
-        h, w = v.depth.shape
-        ui, vi = np.rint(uv[:, 0]).astype(np.int64), np.rint(uv[:, 1]).astype(np.int64)
-        ok &= (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
-        d = np.full(len(pts), np.nan)
-        d[ok] = v.depth[vi[ok], ui[ok]]
-        ok &= np.isfinite(d)
-        err = np.abs(np.linalg.norm(pc, axis=1) - d)
-        best[ok] = np.minimum(best[ok], err[ok])
+        d, dist = _rendered_range(pts, v)
+        ok = np.isfinite(d)
+        err = np.abs(dist[ok] - d[ok])
+        best[ok] = np.minimum(best[ok], err)
     best[~np.isfinite(best)] = np.nan
     return best
 

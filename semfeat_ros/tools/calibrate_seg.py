@@ -15,18 +15,13 @@ import argparse
 from pathlib import Path
 import sys
 
+from semfeat_ros.tools.cli import OneLineParser, error_line
+
 PROG = 'semfeat-calibrate-seg'
 
 
-class _Parser(argparse.ArgumentParser):
-    """argparse with one-line errors (``semfeat-calibrate-seg: error: ...``) and exit status 2."""
-
-    def error(self, message: str) -> None:  # type: ignore[override]
-        self.exit(2, f'{PROG}: error: {message}\n')
-
-
 def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(prog=PROG, description=__doc__.split('\n\n')[0],
+    p = OneLineParser(prog=PROG, description=__doc__.split('\n\n')[0],
                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument('--weights', type=Path, default=None,
                    help='trained weights (.safetensors or its directory; default: shipped)')
@@ -41,10 +36,6 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _one_line(exc: BaseException) -> str:
-    return ' '.join(str(exc).split()) or type(exc).__name__
-
-
 def cli(argv: list[str] | None = None) -> int:
     """Console-script entry point; returns the exit status."""
     args = build_parser().parse_args(argv)
@@ -54,7 +45,7 @@ def cli(argv: list[str] | None = None) -> int:
                     'frames_per_shard': args.frames_per_shard}, args.weights, args.out,
                    progress=not args.no_progress)
     except (OSError, ValueError, RuntimeError) as exc:
-        print(f'{PROG}: error: {_one_line(exc)}', file=sys.stderr)
+        print(f'{PROG}: error: {error_line(exc)}', file=sys.stderr)
         return 1
     val = ''
     if cal.val_before is not None and cal.val_after is not None:

@@ -20,15 +20,9 @@ from semfeat_ros.evaluation.errors import EvalError
 from semfeat_ros.evaluation.methods import method_names
 from semfeat_ros.evaluation.pipeline import DEFAULT_METHODS, EvalConf
 from semfeat_ros.evaluation.transforms import TransformConf
+from semfeat_ros.tools.cli import OneLineParser, error_line
 
 PROG = 'semfeat-eval'
-
-
-class _Parser(argparse.ArgumentParser):
-    """argparse with one-line errors (``semfeat-eval: error: ...``) and exit status 2."""
-
-    def error(self, message: str) -> None:  # type: ignore[override]
-        self.exit(2, f'{PROG}: error: {message}\n')
 
 
 def _methods(text: str) -> tuple[str, ...]:
@@ -74,9 +68,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument('--seed', type=int, default=0, help='random seed (default 0)')
     g.add_argument('--no-progress', action='store_true', help='no progress bar')
 
-    parser = _Parser(prog=PROG, description=__doc__.split('\n\n')[0],
+    parser = OneLineParser(prog=PROG, description=__doc__.split('\n\n')[0],
                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = parser.add_subparsers(dest='mode', required=True, parser_class=_Parser)
+    sub = parser.add_subparsers(dest='mode', required=True, parser_class=OneLineParser)
 
     t = sub.add_parser('transforms', parents=[common],
                        help="paper's protocol: random rotation/translation/scale/homography")
@@ -195,10 +189,6 @@ def run(args: argparse.Namespace) -> dict:
     return mod.main(conf, paths)
 
 
-def _one_line(exc: BaseException) -> str:
-    return ' '.join(str(exc).split()) or type(exc).__name__
-
-
 def cli(argv: list[str] | None = None) -> int:
     """Console-script entry point; returns the exit status."""
     parser = build_parser()
@@ -212,7 +202,7 @@ def cli(argv: list[str] | None = None) -> int:
     try:
         results = run(args)
     except (EvalError, FileNotFoundError, NotADirectoryError, ValueError, OSError) as exc:
-        print(f'{PROG}: error: {_one_line(exc)}', file=sys.stderr)
+        print(f'{PROG}: error: {error_line(exc)}', file=sys.stderr)
         return 1
     from semfeat_ros.evaluation.report import markdown_table
 

@@ -17,18 +17,13 @@ from typing import Any
 
 import yaml
 
+from semfeat_ros.tools.cli import OneLineParser, error_line
+
 PROG = 'semfeat-train'
 
 
-class _Parser(argparse.ArgumentParser):
-    """argparse with one-line errors (``semfeat-train: error: ...``) and exit status 2."""
-
-    def error(self, message: str) -> None:  # type: ignore[override]
-        self.exit(2, f'{PROG}: error: {message}\n')
-
-
 def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(prog=PROG, description=__doc__.split('\n\n')[0],
+    p = OneLineParser(prog=PROG, description=__doc__.split('\n\n')[0],
                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument('--config', type=Path, required=True,
                    help='training YAML (see config/train.yaml)')
@@ -71,10 +66,6 @@ def read_config(path: Path) -> dict[str, Any]:
     return conf
 
 
-def _one_line(exc: BaseException) -> str:
-    return ' '.join(str(exc).split()) or type(exc).__name__
-
-
 def cli(argv: list[str] | None = None) -> int:
     """Console-script entry point; returns the exit status."""
     args = build_parser().parse_args(argv)
@@ -86,7 +77,7 @@ def cli(argv: list[str] | None = None) -> int:
         summary = main(conf, args.out, resume=args.resume, export=args.export,
                        progress=not args.no_progress, stop_after=args.stop_after)
     except (OSError, ValueError, RuntimeError) as exc:
-        print(f'{PROG}: error: {_one_line(exc)}', file=sys.stderr)
+        print(f'{PROG}: error: {error_line(exc)}', file=sys.stderr)
         return 1
     if summary.get('stopped'):
         print(f'{PROG}: paused at step {summary["steps"]}; continue with --resume')
