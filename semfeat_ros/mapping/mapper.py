@@ -171,18 +171,8 @@ class Mapper:
         self._static[:n_cls] = self.labels.static & ~self.labels.dynamic
         self._dynamic = np.zeros(256, bool)
         self._dynamic[:n_cls] = self.labels.dynamic
-        self._hangs = np.zeros(256, bool)
-        for name in self.conf['ceiling_labels']:
-            try:
-                self._hangs[self.labels.id_of(name)] = True
-            except KeyError as exc:
-                raise MapperConfigError(f'ceiling_labels: {exc.args[0]}') from None
-        self._ground = np.zeros(256, bool)
-        for name in self.conf['ground_labels']:
-            try:
-                self._ground[self.labels.id_of(name)] = True
-            except KeyError as exc:
-                raise MapperConfigError(f'ground_labels: {exc.args[0]}') from None
+        self._hangs = self._class_mask('ceiling_labels')
+        self._ground = self._class_mask('ground_labels')
         self._n_classes = n_cls
         self.sigma = self.conf['bearing_sigma_px'] / float(camera.fx)  # rad
         self._gate = float(np.sqrt(self.conf['outlier_chi2'])) * self.sigma  # rad
@@ -197,6 +187,16 @@ class Mapper:
     # ------------------------------------------------------------------------------------------
     # public API
     # ------------------------------------------------------------------------------------------
+
+    def _class_mask(self, key: str) -> np.ndarray:
+        """(256,) bool lookup by class id of the class names in ``conf[key]``."""
+        mask = np.zeros(256, bool)
+        for name in self.conf[key]:
+            try:
+                mask[self.labels.id_of(name)] = True
+            except KeyError as exc:
+                raise MapperConfigError(f'{key}: {exc.args[0]}') from None
+        return mask
 
     def reset(self) -> None:
         """Forget everything (map, trajectory, smoother); the next frame starts a new map."""
