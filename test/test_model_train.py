@@ -20,6 +20,7 @@ from semfeat_ros.model.metrics import (
     mean_iou,
     mutual_nn,
     repeatability,
+    subset_iou,
 )
 from semfeat_ros.model.semfeatnet import SemFeatNet
 from semfeat_ros.model.training import load_train_conf, lr_factor, main, set_frozen
@@ -153,6 +154,8 @@ def test_metrics_hand_examples() -> None:
     miou, iou = mean_iou(cm)
     assert iou[0] == pytest.approx(0.5) and iou[1] == pytest.approx(0.5) and np.isnan(iou[2])
     assert miou == pytest.approx(0.5)
+    assert subset_iou(np.array([0.2, 0.6, np.nan]), np.array([True, True])) == pytest.approx(0.4)
+    assert np.isnan(subset_iou(iou, np.array([False, False, True])))  # only absent classes
 
     def shift(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return p + [10.0, 0.0], p[:, 0] < 50

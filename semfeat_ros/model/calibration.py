@@ -31,7 +31,7 @@ from tqdm import tqdm
 from semfeat_ros.labels import load_labels
 from semfeat_ros.model.errors import DatasetError, ModelConfigError, WeightsFormatError
 from semfeat_ros.model.extractor import FeatureExtractor
-from semfeat_ros.model.metrics import confusion_matrix, mean_iou
+from semfeat_ros.model.metrics import confusion_matrix, mean_iou, subset_iou
 from semfeat_ros.model.semfeatnet import SemFeatNet
 from semfeat_ros.model.training import _check_seeds, expand_shards
 from semfeat_ros.model.weights_io import load_weights, resolve_weights_path, save_weights
@@ -133,7 +133,7 @@ def confusions(extractor: FeatureExtractor, paths: Sequence[Path], per_shard: in
 
 def _scores(cm: np.ndarray, static: np.ndarray) -> tuple[float, float]:
     miou, iou = mean_iou(cm)
-    return float(np.nanmean(iou[: len(static)][static])), float(miou)
+    return subset_iou(iou, static), miou
 
 
 def main(conf: dict[str, Any] | None, weights: str | Path | None, out: Path,

@@ -30,7 +30,18 @@ def mean_iou(conf: np.ndarray) -> tuple[float, np.ndarray]:
     union = conf.sum(0) + conf.sum(1) - tp
     with np.errstate(invalid='ignore', divide='ignore'):
         iou = np.where(union > 0, tp / union, np.nan)
-    return (float(np.nanmean(iou)) if np.isfinite(iou).any() else float('nan')), iou
+    return _nan_mean(iou), iou
+
+
+def subset_iou(iou: np.ndarray, classes: np.ndarray) -> float:
+    """Mean of the per-class ``iou`` (:func:`mean_iou`) over the bool mask ``classes`` (e.g.
+    the static classes; a mask shorter than ``iou`` covers its first entries), NaN-aware."""
+    mask = np.asarray(classes, dtype=bool)
+    return _nan_mean(np.asarray(iou)[: len(mask)][mask])
+
+
+def _nan_mean(values: np.ndarray) -> float:
+    return float(np.nanmean(values)) if np.isfinite(values).any() else float('nan')
 
 
 def repeatability(kp_a: np.ndarray, kp_b: np.ndarray, corr_ab: Correspond, corr_ba: Correspond,

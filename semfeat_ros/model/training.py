@@ -57,6 +57,7 @@ from semfeat_ros.model.metrics import (
     matching_precision,
     mean_iou,
     repeatability,
+    subset_iou,
 )
 from semfeat_ros.model.semfeatnet import SemFeatNet, count_parameters, normalize_image
 from semfeat_ros.model.weights_io import WEIGHTS_NAME, save_weights
@@ -255,11 +256,8 @@ class Validator:
                 m_scored += scored
         model.train(was_training)
         miou, iou = mean_iou(cm)
-        iou_static = iou[: len(self.static)][self.static]
         out = {f'val_{k}': float(np.mean([lg[k] for lg in losses])) for k in losses[0]}
-        out.update(val_miou=miou,
-                   val_miou_static=float(np.nanmean(iou_static)) if np.isfinite(
-                       iou_static).any() else float('nan'),
+        out.update(val_miou=miou, val_miou_static=subset_iou(iou, self.static),
                    val_repeatability=rep_hits / rep_checked if rep_checked else float('nan'),
                    val_precision=m_correct / m_scored if m_scored else float('nan'),
                    val_matches=m_scored / max(len(self.items), 1))

@@ -128,14 +128,12 @@ def evaluate_run(run: MapRun, gt_stamps: np.ndarray, gt_poses: np.ndarray,
         return out, None
     out['trajectory'] = ev.metrics
     cloud = mapper.cloud()
-    aligned = floor_accuracy(cloud, ev.sim3, mapper.floor_levels(), poses[:, :3, 3],
-                             levels_gt.altitudes)
-    out['floors'] = aligned
+    floor_args = (cloud, ev.sim3, mapper.floor_levels(), poses[:, :3, 3], levels_gt.altitudes)
+    out['floors'] = aligned = floor_accuracy(*floor_args)
     if depth_views:
         truth = anchor_points(*mapper.landmark_anchors(cloud.landmark_id), run.camera,
                               (gt_stamps, gt_poses), mapper.T_bc, depth_views)
-        out['floors'] = floor_accuracy(cloud, ev.sim3, mapper.floor_levels(),
-                                       poses[:, :3, 3], levels_gt.altitudes, truth_xyz=truth)
+        out['floors'] = floor_accuracy(*floor_args, truth_xyz=truth)
         out['floors_aligned'] = aligned
         out['point_errors'] = point_errors(cloud, ev.sim3, truth)
         out['surfaces'] = surface_accuracy(cloud, ev.sim3, depth_views)
