@@ -225,8 +225,12 @@ class DriveConfig:
     odometry: bool = False  # emit wheel odometry (SE(2) deltas)
     odom_sigma_rel: float = 0.01  # odometry noise: fraction of the distance per frame
     odom_sigma_yaw: float = 0.002  # odometry yaw noise per frame (rad)
+    odom_yaw_bias: float = 0.0  # odometry yaw-rate bias (rad/s)
+    odom_yaw_scale: float = 0.0  # odometry yaw scale error (measured = (1 + this) * true)
+    odom_dist_scale: float = 0.0  # odometry distance scale error (same convention)
     gnss_every: int = 0  # emit a GNSS fix every this many frames (0: never) ...
-    gnss_start: int = 0  # ... from this frame on (e.g. the drive leaves a covered deck)
+    gnss_start: int = 0  # ... from this frame on (e.g. the drive leaves a covered deck) ...
+    gnss_end: int | None = None  # ... and before this frame (None: to the end)
     gnss_sigma_m: float = 0.03  # fix noise (m)
     gnss_jumps: dict[int, tuple[float, float, float]] = field(default_factory=dict)
     T_enu_map: np.ndarray = field(default_factory=lambda: np.eye(4))  # GNSS frame vs map
@@ -307,7 +311,8 @@ class SyntheticDrive:
                 odom = self._odometry(T_odom_from, T, rng)
             T_odom_from = T
             gnss = None
-            if conf.gnss_every and f >= conf.gnss_start and f % conf.gnss_every == 0:
+            if (conf.gnss_every and f >= conf.gnss_start and f % conf.gnss_every == 0
+                    and (conf.gnss_end is None or f < conf.gnss_end)):
                 p = conf.T_enu_map[:3, :3] @ T[:3, 3] + conf.T_enu_map[:3, 3]
                 p = p + rng.normal(0.0, conf.gnss_sigma_m, 3)
                 if f in conf.gnss_jumps:
@@ -317,11 +322,15 @@ class SyntheticDrive:
 
     def _odometry(self, T_from: np.ndarray, T_to: np.ndarray, rng: np.random.Generator
                   ) -> OdometryDelta:
+        c = self.conf
         rel = se3_inv(T_from) @ T_to
         dist = float(np.linalg.norm(rel[:3, 3]))
-        sig = self.conf.odom_sigma_rel * dist + 1e-3
-        dx, dy = rel[0, 3] + rng.normal(0, sig), rel[1, 3] + rng.normal(0, sig)
-        dyaw = yaw_of(rel[:3, :3]) + rng.normal(0, self.conf.odom_sigma_yaw)
+        sig = c.odom_sigma_rel * dist + 1e-3
+        k = 1.0 + c.odom_dist_scale
+        dx, dy = k * rel[0, 3] + rng.normal(0, sig), k * rel[1, 3] + rng.normal(0, sig)
+        dt = dist / c.speed_mps  # time in motion (s)
+        dyaw = ((1.0 + c.odom_yaw_scale) * yaw_of(rel[:3, :3]) + c.odom_yaw_bias * dt
+                + rng.normal(0, c.odom_sigma_yaw))
         cov = np.diag([sig**2, sig**2, self.conf.odom_sigma_yaw**2])
         return OdometryDelta.from_se2(dx, dy, dyaw, cov, sigma_z=0.01 + 0.05 * dist,
                                       sigma_roll_pitch=0.005 + 0.05 * dist)
