@@ -1,0 +1,100 @@
+"""Online calibration of the wheel odometry: yaw-rate bias, yaw scale error, distance scale.
+
+Wheel (or gyro-aided) odometry turns by ``dpsi_odom = (1 + s) dpsi + b dt + noise`` for a true
+heading change ``dpsi`` (rad) over a time ``dt`` (s) in motion, and travels
+``d_odom = (1 + k) d`` for a true distance ``d`` (m): ``b`` is a yaw-rate bias (rad/s: gyro
+bias, unequal tyres), ``s`` a yaw scale error (track width) and ``k`` a distance scale error
+(tyre radius). Under a deck slab, without GNSS, the mapper's motion follows the odometry, so
+``b`` becomes a steady heading drift (0.1 deg/s is 5 deg over a 50 s level) and ``k`` an
+along-track drift (1 % is 1.5 m over 150 m). Where the fused estimate is anchored (GNSS in the
+window), its keyframe-to-keyframe motion observes all three: ridge regressions of the residuals
+``dpsi_odom - dpsi_est`` on ``(dpsi_est, dt)`` and ``d_odom - d_est`` on ``d_est`` estimate them,
+and later odometry is corrected with the estimates.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from semfeat_ros.mapping.geometry import yaw_of
+from semfeat_ros.mapping.types import OdometryDelta
+from semfeat_ros.matching.geometry import rotation_from_vector
+
+
+def _rot_z(a: float) -> np.ndarray:
+    return rotation_from_vector(np.array([0.0, 0.0, a]))
+
+
+class OdometryCalibration:
+    """Ridge regressions of the odometry's errors; see the module docstring.
+
+    ``sigma_rad``, ``sigma_m``: noise of one keyframe pair's heading residual (rad) and
+    distance residual (m); ``prior_bias`` (rad/s), ``prior_scale``: prior sigmas of ``b`` and of
+    ``s`` and ``k``; ``min_pairs``: pairs needed before :meth:`correct` changes anything.
+    """
+
+    def __init__(self, sigma_rad: float, sigma_m: float, prior_bias: float,
+                 prior_scale: float, min_pairs: int) -> None:
+        if not (sigma_rad > 0 and sigma_m > 0 and prior_bias > 0 and prior_scale > 0
+                and min_pairs >= 1):
+            raise ValueError('OdometryCalibration: sigmas must be > 0 and min_pairs >= 1')
+        self._w_yaw = 1.0 / sigma_rad ** 2
+        self._w_dist = 1.0 / sigma_m ** 2
+        self._A = np.diag([1.0 / prior_scale ** 2, 1.0 / prior_bias ** 2])
+        self._r = np.zeros(2)
+        self._a_dist = 1.0 / prior_scale ** 2
+        self._r_dist = 0.0
+        self._min_pairs = int(min_pairs)
+        self.n_pairs = 0
+        self._x = np.zeros(3)  # s, b, k
+
+    @property
+    def ready(self) -> bool:
+        return self.n_pairs >= self._min_pairs
+
+    @property
+    def yaw_scale(self) -> float:
+        """Yaw scale error ``s`` (0 until ``min_pairs`` pairs were added)."""
+        return float(self._x[0]) if self.ready else 0.0
+
+    @property
+    def yaw_bias(self) -> float:
+        """Yaw-rate bias ``b`` (rad/s; 0 until ``min_pairs`` pairs were added)."""
+        return float(self._x[1]) if self.ready else 0.0
+
+    @property
+    def distance_scale(self) -> float:
+        """Distance scale error ``k`` (0 until ``min_pairs`` pairs were added)."""
+        return float(self._x[2]) if self.ready else 0.0
+
+    def add(self, dpsi_odom: float, dpsi_est: float, dt: float, d_odom: float,
+            d_est: float) -> None:
+        """One keyframe pair: raw odometry and estimated heading change (rad) over ``dt`` (s,
+        in motion) and distance (m)."""
+        vals = (dpsi_odom, dpsi_est, dt, d_odom, d_est)
+        if not all(math.isfinite(v) for v in vals) or dt < 0 or d_odom < 0 or d_est < 0:
+            return
+        res = math.remainder(dpsi_odom - dpsi_est, math.tau)
+        x = np.array([dpsi_est, dt])
+        self._A += self._w_yaw * np.outer(x, x)
+        self._r += self._w_yaw * res * x
+        self._a_dist += self._w_dist * d_est * d_est
+        self._r_dist += self._w_dist * (d_odom - d_est) * d_est
+        self._x[:2] = np.linalg.solve(self._A, self._r)
+        self._x[2] = self._r_dist / self._a_dist
+        self.n_pairs += 1
+
+    def correct(self, delta: OdometryDelta, dt: float) -> OdometryDelta:
+        """``delta`` (base motion over ``dt`` s in motion) corrected: heading change
+        ``(dpsi_odom - b dt) / (1 + s)``, translation ``/ (1 + k)`` and turned by half the
+        heading correction (it was integrated along the mid-interval heading). The covariance
+        is kept."""
+        if not self.ready:
+            return delta
+        dpsi = yaw_of(delta.T[:3, :3])
+        fix = (dpsi - self.yaw_bias * dt) / (1.0 + self.yaw_scale) - dpsi
+        T = np.array(delta.T)
+        T[:3, :3] = T[:3, :3] @ _rot_z(fix)
+        T[:3, 3] = _rot_z(0.5 * fix) @ T[:3, 3] / (1.0 + self.distance_scale)
+        return OdometryDelta(T, delta.covariance)
