@@ -37,6 +37,9 @@ from semfeat_ros.mapping.synthetic import (
     DriveConfig,
     SyntheticDrive,
     garage_drive,
+    long_drive_segments,
+    make_path,
+    make_world,
 )
 
 CAMERA = FisheyeCamera(640, 512, 186.7, 186.7, 320, 256, k=(0.02, -0.004, 0.0005, -0.0001),
@@ -70,8 +73,8 @@ class Run:
 
 
 def drive_through(conf: DriveConfig, mapper: Mapper | None = None,
-                  mapper_conf: dict | None = None) -> Run:
-    drive = garage_drive(CAMERA, T_BASE_CAM, conf)
+                  mapper_conf: dict | None = None, drive: SyntheticDrive | None = None) -> Run:
+    drive = drive or garage_drive(CAMERA, T_BASE_CAM, conf)
     run = Run(mapper or Mapper(CAMERA, T_BASE_CAM, {**SYNTHETIC, **(mapper_conf or {})}),
               drive)
     dyn = LABELS.dynamic
@@ -405,6 +408,33 @@ def test_keyframe_rotations_from_far_tracks_bound_heading_drift() -> None:
         assert (run.mapper.stats['rotation_factors'] > 0) == (sigma > 0)
         ates[sigma] = ate_rmse(*run.trajectory(), align=True)
     assert ates[0.1] < 0.15 and ates[0.1] < 0.5 * ates[0.0], ates
+
+
+def test_odometry_errors_learnt_under_gnss_are_corrected_under_the_slab() -> None:
+    # a 130 m drive; the odometry has a yaw-rate bias and a 2 % distance scale error, GNSS
+    # covers the first 60 % only. The calibration learns both from the GNSS-anchored keyframes;
+    # without it the scale error carries the position away where GNSS ends
+    path = make_path(long_drive_segments(130.0), step=0.05)
+    world = make_world(path, 3)
+    n_frames = int(path.s[-1] / 0.25)
+    conf = DriveConfig(seed=3, odometry=True, gnss_every=1, gnss_end=int(0.6 * n_frames),
+                       T_enu_map=T_ENU_MAP, odom_yaw_bias=0.004, odom_dist_scale=0.02)
+    end_error = {}
+    for on in (False, True):
+        mapper = Mapper(CAMERA, T_BASE_CAM, {**SYNTHETIC, 'odom_calibration': on})
+        run = drive_through(conf, mapper, drive=SyntheticDrive(world, path, CAMERA, T_BASE_CAM,
+                                                                conf))
+        est, gt = run.trajectory(T_ENU_MAP)
+        end_error[on] = float(np.linalg.norm(est[-1, :3, 3] - gt[-1, :3, 3]))
+        cal = mapper.odometry_calibration
+        if on:
+            assert cal['pairs'] >= 50
+            assert cal['yaw_bias_rad_s'] == pytest.approx(0.004, abs=0.001)
+            assert cal['distance_scale'] == pytest.approx(0.02, abs=0.004)
+        else:
+            assert cal == {'yaw_bias_rad_s': 0.0, 'yaw_scale': 0.0, 'distance_scale': 0.0,
+                           'pairs': 0}
+    assert end_error[True] < 0.3 and end_error[False] > 3 * end_error[True], end_error
 
 
 def test_level_prior_holds_the_decks_level_and_leaves_the_ramp_alone() -> None:

@@ -89,6 +89,15 @@ default_conf: dict[str, Any] = {
     #                                  the camera height)
     # ---- odometry -----------------------------------------------------------------------------
     'odom_min_sigma': 1e-4,  # floor of every odometry standard deviation (m or rad)
+    'odom_calibration': True,  # learn the odometry's yaw-rate bias, yaw scale and distance
+    #                            scale errors on keyframes anchored by GNSS and correct later
+    #                            odometry with them (mapping/odometry.py): under a slab,
+    #                            without GNSS, the motion otherwise drifts with those errors
+    'odom_calib_sigma_rad': 0.002,  # noise of one keyframe pair's heading residual (rad) ...
+    'odom_calib_sigma_m': 0.01,  # ... and of its distance residual (m)
+    'odom_calib_prior_bias': 0.005,  # prior sigma of the yaw-rate bias (rad/s) ...
+    'odom_calib_prior_scale': 0.05,  # ... and of the yaw scale error
+    'odom_calib_min_pairs': 30,  # anchored keyframe pairs needed before it corrects anything
     # ---- GNSS ---------------------------------------------------------------------------------
     'gnss_max_sigma_m': 0.5,  # reject fixes with any position sigma above this (m)
     'gnss_min_sigma_m': 0.02,  # floor of the fix sigma (m): never a zero covariance
@@ -149,7 +158,9 @@ _POSITIVE = (
     'kf_max_distance_m', 'init_min_parallax_deg', 'init_ransac_px', 'init_odom_gate_px',
     'init_odom_max_angle_deg', 'lm_min_depth_m',
     'lm_max_depth_m', 'ground_sigma_m', 'ground_max_distance_m', 'init_plane_threshold_m',
-    'odom_min_sigma', 'gnss_max_sigma_m', 'gnss_min_sigma_m', 'gnss_max_age_s',
+    'odom_min_sigma', 'odom_calib_sigma_rad', 'odom_calib_sigma_m',
+    'odom_calib_prior_bias',
+    'odom_calib_prior_scale', 'gnss_max_sigma_m', 'gnss_min_sigma_m', 'gnss_max_age_s',
     'gnss_align_min_span_m', 'gnss_align_max_rms_m', 'gnss_gate_chi2', 'gnss_gate_sigma_m',
     'window_keyframes', 'relinearize_threshold', 'prior_sigma_rad', 'prior_sigma_m',
     'recovery_sigma_m', 'recovery_sigma_rad', 'reinit_link_sigma_m', 'reinit_link_sigma_rad',
@@ -163,7 +174,7 @@ _INT_MIN = {
     'lm_min_keyframes': 2, 'ground_max_per_keyframe': 0, 'max_obs_per_keyframe': 10,
     'max_new_landmarks': 1, 'ground_min_points': 3, 'gnss_align_min_fixes': 2,
     'gnss_max_rejects': 1, 'relinearize_skip': 1, 'marginalize_every': 1, 'extra_iterations': 0,
-    'cloud_min_obs': 1, 'level_delay_keyframes': 1,
+    'cloud_min_obs': 1, 'level_delay_keyframes': 1, 'odom_calib_min_pairs': 1,
     'max_map_points': 1, 'seed': 0,
 }
 _FRACTIONS = ('kf_min_tracked_fraction', 'init_min_inlier_ratio', 'init_odom_min_inlier_ratio',
@@ -211,7 +222,7 @@ def merge_conf(conf: dict[str, Any] | None = None) -> dict[str, Any]:
         if not (isinstance(out[key], list | tuple) and all(isinstance(n, str) for n in out[key])):
             raise MapperConfigError(f'{key} must be a list of class names, got {out[key]!r}')
     for key in ('use_odometry', 'use_gnss', 'init_require_metric', 'keep_full_graph',
-                'init_from_odometry'):
+                'init_from_odometry', 'odom_calibration'):
         if not isinstance(out[key], bool):
             raise MapperConfigError(f'{key} must be true or false, got {out[key]!r}')
     if out['lm_max_depth_m'] <= out['lm_min_depth_m']:

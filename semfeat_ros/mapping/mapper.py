@@ -44,11 +44,15 @@ from semfeat_ros.mapping.geometry import (
     se3_log,
     transform_covariance,
     triangulate_bearings,
+    yaw_of,
 )
+from semfeat_ros.mapping.odometry import OdometryCalibration
 from semfeat_ros.mapping.types import GnssFix, MapperResult, OdometryDelta, Tracks
 from semfeat_ros.matching.geometry import refine_pose, verify_bearings
 
 STATES = ('initializing', 'tracking', 'odometry_only', 'lost')
+_STILL_M = 1e-3  # an odometry delta shorter than this (m) is a stop
+_GNSS_ANCHOR_KF = 3  # a keyframe pair counts as GNSS-anchored with fixes this close (keyframes)
 # What gtsam raises from a failed update: IndeterminantLinearSystem and cheirality/other C++
 # exceptions arrive as RuntimeError, std::out_of_range as IndexError, invalid_argument as
 # ValueError.
@@ -123,12 +127,21 @@ class _OdomChain:
         self.cov = np.zeros((6, 6))
         self.ok = ok
         self.dist = 0.0
+        self.raw_yaw = 0.0  # heading change as measured, before the calibration (rad)
+        self.raw_dist = 0.0  # distance as measured, before the calibration (m)
+        self.dt = 0.0  # time in motion (s)
 
-    def add(self, d: OdometryDelta) -> None:
+    def add(self, d: OdometryDelta, raw: tuple[float, float, float] = (0.0, 0.0, 0.0)
+            ) -> None:
+        """Compose delta ``d``; ``raw``: its measured (heading change rad, distance m, time in
+        motion s)."""
         A = adjoint(se3_inv(d.T))
         self.cov = A @ self.cov @ A.T + d.covariance
         self.T = self.T @ d.T
         self.dist += float(np.linalg.norm(d.T[:3, 3]))
+        self.raw_yaw += raw[0]
+        self.raw_dist += raw[1]
+        self.dt += raw[2]
 
 
 @dataclass
@@ -236,6 +249,15 @@ class Mapper:
         self._gnss_pairs: list[tuple[int, np.ndarray, np.ndarray]] = []
         self._gnss_aligned = False
         self._gnss_rejects = 0
+        self._gnss_kids: set[int] = set()  # keyframes with a GNSS factor, not yet marginalised
+        # odometry calibration; per keyframe the raw (heading change, distance, time in
+        # motion) of the odometry from the previous keyframe
+        c = self.conf
+        self._odom_cal = OdometryCalibration(
+            c['odom_calib_sigma_rad'], c['odom_calib_sigma_m'], c['odom_calib_prior_bias'],
+            c['odom_calib_prior_scale'], c['odom_calib_min_pairs']
+        ) if c['odom_calibration'] else None
+        self._kf_odom_raw: dict[int, tuple[float, float, float]] = {}
         self._floors: FloorLevels | None = None
         self._floors_at = -1
         self.stats: dict[str, int] = dict(
@@ -253,6 +275,16 @@ class Mapper:
     def metric(self) -> bool:
         """True once the scale comes from odometry, GNSS or the ground plane."""
         return self._metric
+
+    @property
+    def odometry_calibration(self) -> dict[str, float | int]:
+        """The learnt odometry errors: ``yaw_bias_rad_s``, ``yaw_scale``, ``distance_scale``
+        (all 0 until enough GNSS-anchored keyframe pairs) and ``pairs`` used so far."""
+        c = self._odom_cal
+        if c is None:
+            return {'yaw_bias_rad_s': 0.0, 'yaw_scale': 0.0, 'distance_scale': 0.0, 'pairs': 0}
+        return {'yaw_bias_rad_s': c.yaw_bias, 'yaw_scale': c.yaw_scale,
+                'distance_scale': c.distance_scale, 'pairs': c.n_pairs}
 
     @property
     def gnss_aligned(self) -> bool:
@@ -277,15 +309,23 @@ class Mapper:
             odometry = odometry.validated()
         else:
             odometry = None
+        dt = 0.0 if self._last_stamp is None else (frame.stamp_ns - self._last_stamp) * 1e-9
         self._last_stamp = frame.stamp_ns
         self.stats['frames'] += 1
         self.stats['rejected_rows'] += n_bad
+        raw = (0.0, 0.0, 0.0)
+        if odometry is not None:
+            dist = float(np.linalg.norm(odometry.T[:3, 3]))
+            # the odometry's yaw error accumulates while it reports motion (none at a stop)
+            raw = (yaw_of(odometry.T[:3, :3]), dist, dt if dist >= _STILL_M else 0.0)
+            if self._odom_cal is not None:
+                odometry = self._odom_cal.correct(odometry, raw[2])
         if self.conf['use_odometry']:
             for chain in (self._kf_odom, self._ref_odom):
                 if odometry is None:
                     chain.ok = False
                 else:
-                    chain.add(odometry)
+                    chain.add(odometry, raw)
         mappable = self._vote(frame)
         fix = None
         if self.conf['use_gnss'] and gnss is not None:
@@ -849,6 +889,8 @@ class Mapper:
         ts = {X(kid): self._ts(kid)}
         if self._kf_odom.ok and prev in self._kfs:
             self._add_odom_rec(prev, kid, self._kf_odom, recs)
+            ch = self._kf_odom
+            self._kf_odom_raw[kid] = (ch.raw_yaw, ch.raw_dist, ch.dt)
         self._kf_odom = _OdomChain(self.conf['use_odometry'])
         self._observe_keyframe(frame, mappable, kid)
         if prev in self._kfs:
@@ -1174,6 +1216,7 @@ class Mapper:
         if self._gnss_aligned:
             f = fac.gnss_factor(X(kid), pos, cov, self._arm_c, 2.0)
             recs.append(self._rec(f, 'gnss', kid))
+            self._gnss_kids.add(kid)
         else:
             self._gnss_pairs.append((kid, pos, cov))
             del self._gnss_pairs[:-500]  # bounded while waiting for enough spread to align
@@ -1209,6 +1252,7 @@ class Mapper:
         events.append(f'gnss_aligned: rms {rms:.2f} m, scale {s:.3f}')
         recs = [self._rec(fac.gnss_factor(X(k), pos, cov, self._arm_c, 2.0), 'gnss', k)
                 for (k, pos, cov), ok in zip(pairs, keep) if ok and k in self._kfs]
+        self._gnss_kids.update(r.kid for r in recs)
         self._gnss_pairs = []
         self._metric = True
         if not (self._rebuild(recs, gtsam.Values(), {}, weak=False, events=events)
@@ -1501,6 +1545,7 @@ class Mapper:
                 for rid in self._kfs[k].rids:
                     self._drop_rec(rid)
                 del self._kfs[k]
+                self._learn_odometry(k)
         cutoff = self._max_ts - self.conf['window_keyframes'] + self.conf['marginalize_every']
         for t in [t for t in self._lm_by_ts if t <= cutoff]:
             for lid in list(self._lm_by_ts[t]):
@@ -1517,6 +1562,25 @@ class Mapper:
         self._check_outliers(lids)
         if self.conf['use_gnss'] and not self._gnss_aligned and self._gnss_pairs:
             self._try_gnss_align(events)
+
+    def _learn_odometry(self, k: int) -> None:
+        """Feed the odometry calibration with marginalised keyframe ``k`` and its predecessor:
+        their final heading change and distance against the odometry's, when GNSS factors sit
+        within ``_GNSS_ANCHOR_KF`` keyframes on both sides (an anchored estimate; without GNSS
+        the motion follows the odometry itself)."""
+        odo = self._kf_odom_raw.pop(k, None)
+        gap = _GNSS_ANCHOR_KF
+        anchored = (any(k - gap <= g < k for g in self._gnss_kids)
+                    and any(k <= g <= k + gap for g in self._gnss_kids))
+        self._gnss_kids = {g for g in self._gnss_kids if g >= k - gap}
+        for old in [j for j in self._kf_odom_raw if j < k]:
+            del self._kf_odom_raw[old]
+        if self._odom_cal is None or odo is None or not anchored:
+            return
+        T0 = self._kf_T_wc[k - 1] @ self.T_cb
+        T1 = self._kf_T_wc[k] @ self.T_cb
+        self._odom_cal.add(odo[0], yaw_of(T0[:3, :3].T @ T1[:3, :3]), odo[2], odo[1],
+                           float(np.linalg.norm(T1[:3, 3] - T0[:3, 3])))
 
     def _finalize_landmark(self, lid: int, xyz: np.ndarray) -> None:
         lm = self._lms.pop(lid)
