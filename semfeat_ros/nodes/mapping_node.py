@@ -10,6 +10,7 @@ and ``trajectory.tum`` into ``output_dir``.
 from __future__ import annotations
 
 from dataclasses import dataclass
+import math
 from pathlib import Path
 import sys
 import threading
@@ -211,6 +212,7 @@ class MappingNode(Node):
             self.last_result = result
             self._dirty = self._dirty or result.keyframe
             stamps, poses = self.session.mapper.trajectory()
+            cal = self.session.mapper.odometry_calibration
         if result.T_map_base is not None:
             cov = None
             if result.covariance is not None:  # (rot, trans) -> ROS (trans, rot)
@@ -226,6 +228,11 @@ class MappingNode(Node):
         self.health.extra.update(state=result.state, metric=str(result.metric),
                                  landmarks=str(result.n_landmarks),
                                  update_ms=f'{result.update_ms:.1f}')
+        self.health.extra.update(
+            odom_yaw_bias_deg_s=f'{math.degrees(cal["yaw_bias_rad_s"]):.4f}',
+            odom_yaw_scale=f'{cal["yaw_scale"]:.4f}',
+            odom_distance_scale=f'{cal["distance_scale"]:.4f}',
+            odom_calibration_pairs=str(cal['pairs']))
 
     # -- outputs ----------------------------------------------------------------------------
     def _publish_cloud(self) -> None:

@@ -106,6 +106,7 @@ def run_summary(run: MapRun) -> dict[str, Any]:
         'features_per_frame': timing_stats([float(r.n_features) for r in feats]),
         'tracks_per_frame': timing_stats([float(r.n_tracks) for r in run.records]),
         'mapper_stats': dict(mapper.stats), 'wall_s': round(run.wall_s, 3),
+        'odometry_calibration': mapper.odometry_calibration,
     }
 
 
