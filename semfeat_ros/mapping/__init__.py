@@ -7,7 +7,9 @@ Public API
   move to a voxel-bounded map). ``update(Tracks, OdometryDelta | None, GnssFix | None) ->
   MapperResult`` per frame; ``cloud() -> SemanticCloud``; ``trajectory() -> (stamps_ns,
   T_map_base)``; ``floor_levels() -> FloorLevels``; ``window()``; ``stats``;
-  ``batch_optimize()`` (Levenberg-Marquardt on the full graph, with ``keep_full_graph``).
+  ``batch_optimize()`` (Levenberg-Marquardt on the full graph, with ``keep_full_graph``);
+  ``odometry_calibration`` (the wheel odometry's yaw-rate bias, yaw scale and distance scale
+  errors, learnt on GNSS-anchored keyframes and removed from later odometry: ``odometry``).
 * Inputs: ``Tracks`` (track ids, unit bearings in the optical frame, pixels, labels),
   ``OdometryDelta`` (base motion since the previous frame, SE(3) or ``from_se2``, covariance in
   GTSAM's (rot, trans) order), ``GnssFix`` (antenna position in the map/ENU frame + 3x3
