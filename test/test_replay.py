@@ -68,6 +68,10 @@ def test_clean_replay_diagnostics(live: dict) -> None:
     for node, values in diag.items():
         assert int(values['errors_rejected']) == 0, (node, values['last_error'])
         assert int(values['processing_errors']) == 0, (node, values['last_error'])
+    m = diag['mapping_node']  # the odometry calibration's readings (anchored pairs so far)
+    assert int(m['odom_calibration_pairs']) >= 0
+    assert all(np.isfinite(float(m[k])) for k in (
+        'odom_yaw_bias_deg_s', 'odom_yaw_scale', 'odom_distance_scale'))
     f = diag['feature_node']
     received, processed, dropped = (int(f[k]) for k in (
         'frames_received', 'frames_processed', 'frames_dropped'))

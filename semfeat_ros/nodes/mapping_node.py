@@ -69,6 +69,9 @@ class MappingNodeConfig:
                            range=(60.0, 240.0), read_only=True)
     use_odometry: bool = param(True, 'Use wheel odometry when it is published', read_only=True)
     use_gnss: bool = param(True, 'Use GNSS fixes (gated on their covariance)', read_only=True)
+    odom_calibration: bool = param(
+        True, "Learn the wheel odometry's yaw-rate bias, yaw scale and distance scale errors "
+        'where GNSS anchors the map and remove them from later odometry', read_only=True)
     gnss_lever_arm_m: list[float] = param([1.2, 0.0, 1.5], 'GNSS antenna in base_link (m)',
                                           read_only=True)
     window_keyframes: int = param(15, 'Keyframes in the fixed-lag smoother', range=(3, 200),
@@ -99,6 +102,7 @@ class MappingNodeConfig:
 def mapper_conf(c: MappingNodeConfig) -> dict[str, Any]:
     """The mapping core's conf for the node parameters."""
     return {'use_odometry': c.use_odometry, 'use_gnss': c.use_gnss,
+            'odom_calibration': c.odom_calibration,
             'gnss_lever_arm_m': list(c.gnss_lever_arm_m),
             'window_keyframes': c.window_keyframes, 'kf_parallax_deg': c.kf_parallax_deg,
             'kf_max_distance_m': c.kf_max_distance_m, 'bearing_sigma_px': c.bearing_sigma_px,
