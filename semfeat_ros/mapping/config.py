@@ -96,7 +96,8 @@ default_conf: dict[str, Any] = {
     'odom_calib_sigma_rad': 0.002,  # noise of one keyframe pair's heading residual (rad) ...
     'odom_calib_sigma_m': 0.01,  # ... and of its distance residual (m)
     'odom_calib_prior_bias': 0.005,  # prior sigma of the yaw-rate bias (rad/s) ...
-    'odom_calib_prior_scale': 0.05,  # ... and of the yaw scale error
+    'odom_calib_prior_scale': 0.02,  # ... and of the yaw and distance scale errors (tyres and
+    #                                  track width: a few %)
     'odom_calib_min_pairs': 30,  # anchored keyframe pairs needed before it corrects anything
     # ---- GNSS ---------------------------------------------------------------------------------
     'gnss_max_sigma_m': 0.5,  # reject fixes with any position sigma above this (m)
@@ -207,9 +208,10 @@ def merge_conf(conf: dict[str, Any] | None = None) -> dict[str, Any]:
         v = out[key]
         if isinstance(v, bool) or not isinstance(v, int | float) or not v >= 0:
             raise MapperConfigError(f'{key} must be >= 0 (deg), got {v!r}')
-    if not out['kf_min_distance_m'] >= 0:
-        raise MapperConfigError(
-            f'kf_min_distance_m must be >= 0, got {out["kf_min_distance_m"]!r}')
+    for key in ('kf_min_distance_m',):
+        v = out[key]
+        if isinstance(v, bool) or not isinstance(v, int | float) or not v >= 0:
+            raise MapperConfigError(f'{key} must be a number >= 0, got {v!r}')
     if out['camera_height_m'] is not None and not (
             isinstance(out['camera_height_m'], int | float) and out['camera_height_m'] > 0):
         raise MapperConfigError(

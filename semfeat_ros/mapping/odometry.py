@@ -26,12 +26,50 @@ def _rot_z(a: float) -> np.ndarray:
     return rotation_from_vector(np.array([0.0, 0.0, a]))
 
 
-class OdometryCalibration:
-    """Ridge regressions of the odometry's errors; see the module docstring.
+class _Regression:
+    """Bayesian linear regression ``y = x . theta + e`` with a zero-mean Gaussian prior on
+    ``theta`` (sigmas ``prior``) and the noise sigma of ``e`` estimated from the residuals (never
+    below ``sigma_min``). Each sample is Huber-weighted (3 sigmas) against the current fit, so a
+    glitch of the anchoring estimate (a GNSS multipath jump) cannot drag it far."""
 
-    ``sigma_rad``, ``sigma_m``: noise of one keyframe pair's heading residual (rad) and
-    distance residual (m); ``prior_bias`` (rad/s), ``prior_scale``: prior sigmas of ``b`` and of
-    ``s`` and ``k``; ``min_pairs``: pairs needed before :meth:`correct` changes anything.
+    def __init__(self, prior: tuple[float, ...], sigma_min: float) -> None:
+        self.prior = np.asarray(prior, dtype=np.float64)
+        self._P = np.diag(1.0 / self.prior ** 2)
+        n = len(prior)
+        self._xx = np.zeros((n, n))
+        self._xy = np.zeros(n)
+        self._yy = 0.0
+        self._n = 0.0
+        self._var_min = sigma_min ** 2
+        self.var = self._var_min
+        self.theta = np.zeros(n)
+        self.cov = np.diag(self.prior ** 2)
+
+    def add(self, x: np.ndarray, y: float) -> None:
+        z = abs(y - float(x @ self.theta)) / math.sqrt(self.var)
+        w = 1.0 if z <= _HUBER_K else _HUBER_K / z
+        self._xx += w * np.outer(x, x)
+        self._xy += w * y * x
+        self._yy += w * y * y
+        self._n += w
+        rss = self._yy - 2.0 * self.theta @ self._xy + self.theta @ self._xx @ self.theta
+        self.var = max(self._var_min, rss / max(self._n - len(x), 1.0))
+        A = self._P + self._xx / self.var
+        self.cov = np.linalg.inv(A)
+        self.theta = self.cov @ self._xy / self.var
+
+
+_HUBER_K = 3.0
+
+
+class OdometryCalibration:
+    """Online regressions of the odometry's errors; see the module docstring.
+
+    ``sigma_rad``, ``sigma_m``: smallest noise of one keyframe pair's heading residual (rad) and
+    distance residual (m) (the noise is estimated from the residuals above that);
+    ``prior_bias`` (rad/s), ``prior_scale``: prior sigmas of ``b`` and of ``s`` and ``k`` (the
+    estimates are posterior means: what a drive does not observe, e.g. ``s`` without turns,
+    stays near 0); ``min_pairs``: pairs needed before :meth:`correct` changes anything.
     """
 
     def __init__(self, sigma_rad: float, sigma_m: float, prior_bias: float,
@@ -39,15 +77,11 @@ class OdometryCalibration:
         if not (sigma_rad > 0 and sigma_m > 0 and prior_bias > 0 and prior_scale > 0
                 and min_pairs >= 1):
             raise ValueError('OdometryCalibration: sigmas must be > 0 and min_pairs >= 1')
-        self._w_yaw = 1.0 / sigma_rad ** 2
-        self._w_dist = 1.0 / sigma_m ** 2
-        self._A = np.diag([1.0 / prior_scale ** 2, 1.0 / prior_bias ** 2])
-        self._r = np.zeros(2)
-        self._a_dist = 1.0 / prior_scale ** 2
-        self._r_dist = 0.0
+        self._yaw = _Regression((prior_scale, prior_bias), sigma_rad)
+        self._dist = _Regression((prior_scale,), sigma_m)
         self._min_pairs = int(min_pairs)
         self.n_pairs = 0
-        self._x = np.zeros(3)  # s, b, k
+        self._x = np.zeros(3)  # s, b, k as applied
 
     @property
     def ready(self) -> bool:
@@ -55,18 +89,24 @@ class OdometryCalibration:
 
     @property
     def yaw_scale(self) -> float:
-        """Yaw scale error ``s`` (0 until ``min_pairs`` pairs were added)."""
-        return float(self._x[0]) if self.ready else 0.0
+        """Yaw scale error ``s`` as applied (0 until ``min_pairs`` pairs were added)."""
+        return float(self._x[0])
 
     @property
     def yaw_bias(self) -> float:
-        """Yaw-rate bias ``b`` (rad/s; 0 until ``min_pairs`` pairs were added)."""
-        return float(self._x[1]) if self.ready else 0.0
+        """Yaw-rate bias ``b`` as applied (rad/s; 0 until ``min_pairs`` pairs were added)."""
+        return float(self._x[1])
 
     @property
     def distance_scale(self) -> float:
-        """Distance scale error ``k`` (0 until ``min_pairs`` pairs were added)."""
-        return float(self._x[2]) if self.ready else 0.0
+        """Distance scale error ``k`` as applied (0 until ``min_pairs`` pairs were added)."""
+        return float(self._x[2])
+
+    @property
+    def sigmas(self) -> tuple[float, float, float]:
+        """Posterior sigmas of ``s``, ``b`` (rad/s) and ``k``."""
+        return (*np.sqrt(np.diag(self._yaw.cov)).tolist(),
+                float(np.sqrt(self._dist.cov[0, 0])))
 
     def add(self, dpsi_odom: float, dpsi_est: float, dt: float, d_odom: float,
             d_est: float) -> None:
@@ -75,22 +115,18 @@ class OdometryCalibration:
         vals = (dpsi_odom, dpsi_est, dt, d_odom, d_est)
         if not all(math.isfinite(v) for v in vals) or dt < 0 or d_odom < 0 or d_est < 0:
             return
-        res = math.remainder(dpsi_odom - dpsi_est, math.tau)
-        x = np.array([dpsi_est, dt])
-        self._A += self._w_yaw * np.outer(x, x)
-        self._r += self._w_yaw * res * x
-        self._a_dist += self._w_dist * d_est * d_est
-        self._r_dist += self._w_dist * (d_odom - d_est) * d_est
-        self._x[:2] = np.linalg.solve(self._A, self._r)
-        self._x[2] = self._r_dist / self._a_dist
+        self._yaw.add(np.array([dpsi_est, dt]), math.remainder(dpsi_odom - dpsi_est, math.tau))
+        self._dist.add(np.array([d_est]), d_odom - d_est)
         self.n_pairs += 1
+        if self.ready:
+            self._x = np.concatenate([self._yaw.theta, self._dist.theta])
 
     def correct(self, delta: OdometryDelta, dt: float) -> OdometryDelta:
         """``delta`` (base motion over ``dt`` s in motion) corrected: heading change
         ``(dpsi_odom - b dt) / (1 + s)``, translation ``/ (1 + k)`` and turned by half the
         heading correction (it was integrated along the mid-interval heading). The covariance
         is kept."""
-        if not self.ready:
+        if not self._x.any():
             return delta
         dpsi = yaw_of(delta.T[:3, :3])
         fix = (dpsi - self.yaw_bias * dt) / (1.0 + self.yaw_scale) - dpsi
