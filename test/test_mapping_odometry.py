@@ -42,6 +42,17 @@ def test_learns_bias_and_scales_from_anchored_pairs() -> None:
     assert cal.distance_scale == pytest.approx(TRUE_K, abs=1e-3)
 
 
+def test_a_burst_of_bad_anchors_barely_moves_the_estimate() -> None:
+    clean, bad = calibration(), calibration()
+    feed(clean, 200)
+    feed(bad, 200)
+    for _ in range(10):  # a GNSS multipath jump: the anchored motion off by 3 deg and 0.5 m
+        bad.add(0.0, math.radians(3.0), 0.4, 1.6, 2.1)
+    assert bad.n_pairs == clean.n_pairs + 10
+    assert bad.yaw_bias == pytest.approx(clean.yaw_bias, abs=3e-4)
+    assert bad.distance_scale == pytest.approx(clean.distance_scale, abs=3e-3)
+
+
 def test_correct_inverts_the_error_model() -> None:
     cal = calibration(min_pairs=1)
     feed(cal, 400)

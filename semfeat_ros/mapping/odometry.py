@@ -7,7 +7,7 @@ bias, unequal tyres), ``s`` a yaw scale error (track width) and ``k`` a distance
 (tyre radius). Under a deck slab, without GNSS, the mapper's motion follows the odometry, so
 ``b`` becomes a steady heading drift (0.1 deg/s is 5 deg over a 50 s level) and ``k`` an
 along-track drift (1 % is 1.5 m over 150 m). Where the fused estimate is anchored (GNSS in the
-window), its keyframe-to-keyframe motion observes all three: ridge regressions of the residuals
+window), its keyframe-to-keyframe motion observes all three: regressions of the residuals
 ``dpsi_odom - dpsi_est`` on ``(dpsi_est, dt)`` and ``d_odom - d_est`` on ``d_est`` estimate them,
 and later odometry is corrected with the estimates.
 """
@@ -21,6 +21,8 @@ from semfeat_ros.mapping.geometry import yaw_of
 from semfeat_ros.mapping.types import OdometryDelta
 from semfeat_ros.matching.geometry import rotation_from_vector
 
+_CAUCHY_C = 4.0  # width (in noise sigmas) of the Cauchy weight of a sample against the fit
+
 
 def _rot_z(a: float) -> np.ndarray:
     return rotation_from_vector(np.array([0.0, 0.0, a]))
@@ -29,7 +31,7 @@ def _rot_z(a: float) -> np.ndarray:
 class _Regression:
     """Bayesian linear regression ``y = x . theta + e`` with a zero-mean Gaussian prior on
     ``theta`` (sigmas ``prior``) and the noise sigma of ``e`` estimated from the residuals (never
-    below ``sigma_min``). Each sample is Huber-weighted (3 sigmas) against the current fit, so a
+    below ``sigma_min``). Each sample is Cauchy-weighted against the current fit, so that a
     glitch of the anchoring estimate (a GNSS multipath jump) cannot drag it far."""
 
     def __init__(self, prior: tuple[float, ...], sigma_min: float) -> None:
@@ -40,14 +42,17 @@ class _Regression:
         self._xy = np.zeros(n)
         self._yy = 0.0
         self._n = 0.0
+        self._sigma_min = sigma_min
         self._var_min = sigma_min ** 2
         self.var = self._var_min
         self.theta = np.zeros(n)
         self.cov = np.diag(self.prior ** 2)
 
     def add(self, x: np.ndarray, y: float) -> None:
-        z = abs(y - float(x @ self.theta)) / math.sqrt(self.var)
-        w = 1.0 if z <= _HUBER_K else _HUBER_K / z
+        # Cauchy weight on the residual in units of sigma_min (not of the estimated noise: a
+        # burst of outliers would widen its own gate)
+        z = (y - float(x @ self.theta)) / (_CAUCHY_C * self._sigma_min)
+        w = 1.0 / (1.0 + z * z)
         self._xx += w * np.outer(x, x)
         self._xy += w * y * x
         self._yy += w * y * y
@@ -58,8 +63,6 @@ class _Regression:
         self.cov = np.linalg.inv(A)
         self.theta = self.cov @ self._xy / self.var
 
-
-_HUBER_K = 3.0
 
 
 class OdometryCalibration:
@@ -101,12 +104,6 @@ class OdometryCalibration:
     def distance_scale(self) -> float:
         """Distance scale error ``k`` as applied (0 until ``min_pairs`` pairs were added)."""
         return float(self._x[2])
-
-    @property
-    def sigmas(self) -> tuple[float, float, float]:
-        """Posterior sigmas of ``s``, ``b`` (rad/s) and ``k``."""
-        return (*np.sqrt(np.diag(self._yaw.cov)).tolist(),
-                float(np.sqrt(self._dist.cov[0, 0])))
 
     def add(self, dpsi_odom: float, dpsi_est: float, dt: float, d_odom: float,
             d_est: float) -> None:
