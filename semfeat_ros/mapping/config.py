@@ -159,8 +159,7 @@ _POSITIVE = (
     'kf_max_distance_m', 'init_min_parallax_deg', 'init_ransac_px', 'init_odom_gate_px',
     'init_odom_max_angle_deg', 'lm_min_depth_m',
     'lm_max_depth_m', 'ground_sigma_m', 'ground_max_distance_m', 'init_plane_threshold_m',
-    'odom_min_sigma', 'odom_calib_sigma_rad', 'odom_calib_sigma_m',
-    'odom_calib_prior_bias',
+    'odom_min_sigma', 'odom_calib_sigma_rad', 'odom_calib_sigma_m', 'odom_calib_prior_bias',
     'odom_calib_prior_scale', 'gnss_max_sigma_m', 'gnss_min_sigma_m', 'gnss_max_age_s',
     'gnss_align_min_span_m', 'gnss_align_max_rms_m', 'gnss_gate_chi2', 'gnss_gate_sigma_m',
     'window_keyframes', 'relinearize_threshold', 'prior_sigma_rad', 'prior_sigma_m',
@@ -208,10 +207,9 @@ def merge_conf(conf: dict[str, Any] | None = None) -> dict[str, Any]:
         v = out[key]
         if isinstance(v, bool) or not isinstance(v, int | float) or not v >= 0:
             raise MapperConfigError(f'{key} must be >= 0 (deg), got {v!r}')
-    for key in ('kf_min_distance_m',):
-        v = out[key]
-        if isinstance(v, bool) or not isinstance(v, int | float) or not v >= 0:
-            raise MapperConfigError(f'{key} must be a number >= 0, got {v!r}')
+    v = out['kf_min_distance_m']
+    if isinstance(v, bool) or not isinstance(v, int | float) or not v >= 0:
+        raise MapperConfigError(f'kf_min_distance_m must be a number >= 0, got {v!r}')
     if out['camera_height_m'] is not None and not (
             isinstance(out['camera_height_m'], int | float) and out['camera_height_m'] > 0):
         raise MapperConfigError(

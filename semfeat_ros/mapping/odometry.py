@@ -35,8 +35,8 @@ class _Regression:
     glitch of the anchoring estimate (a GNSS multipath jump) cannot drag it far."""
 
     def __init__(self, prior: tuple[float, ...], sigma_min: float) -> None:
-        self.prior = np.asarray(prior, dtype=np.float64)
-        self._P = np.diag(1.0 / self.prior ** 2)
+        prior_var = np.asarray(prior, dtype=np.float64) ** 2
+        self._P = np.diag(1.0 / prior_var)
         n = len(prior)
         self._xx = np.zeros((n, n))
         self._xy = np.zeros(n)
@@ -46,7 +46,7 @@ class _Regression:
         self._var_min = sigma_min ** 2
         self.var = self._var_min
         self.theta = np.zeros(n)
-        self.cov = np.diag(self.prior ** 2)
+        self.cov = np.diag(prior_var)
 
     def add(self, x: np.ndarray, y: float) -> None:
         # Cauchy weight on the residual in units of sigma_min (not of the estimated noise: a
@@ -62,7 +62,6 @@ class _Regression:
         A = self._P + self._xx / self.var
         self.cov = np.linalg.inv(A)
         self.theta = self.cov @ self._xy / self.var
-
 
 
 class OdometryCalibration:
