@@ -21,8 +21,7 @@ PROG = 'semfeat-calibrate-seg'
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = OneLineParser(prog=PROG, description=__doc__.split('\n\n')[0],
-                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = OneLineParser.for_tool(PROG, __doc__)
     p.add_argument('--weights', type=Path, default=None,
                    help='trained weights (.safetensors or its directory; default: shipped)')
     p.add_argument('--train-shards', nargs='+', required=True,

@@ -8,6 +8,13 @@ class OneLineParser(argparse.ArgumentParser):
     """argparse whose usage errors are one line (``<tool>: error: ...``) with exit status 2;
     sub-command parsers report under the tool's name too."""
 
+    @classmethod
+    def for_tool(cls, prog: str, doc: str | None) -> OneLineParser:
+        """The parser of tool ``prog``: its description is the first paragraph of ``doc`` (the
+        module docstring), shown as written."""
+        return cls(prog=prog, description=(doc or '').split('\n\n')[0],
+                   formatter_class=argparse.RawDescriptionHelpFormatter)
+
     def error(self, message: str) -> None:  # type: ignore[override]
         self.exit(2, f'{self.prog.split()[0]}: error: {message}\n')
 

@@ -68,8 +68,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument('--seed', type=int, default=0, help='random seed (default 0)')
     g.add_argument('--no-progress', action='store_true', help='no progress bar')
 
-    parser = OneLineParser(prog=PROG, description=__doc__.split('\n\n')[0],
-                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = OneLineParser.for_tool(PROG, __doc__)
     sub = parser.add_subparsers(dest='mode', required=True, parser_class=OneLineParser)
 
     t = sub.add_parser('transforms', parents=[common],

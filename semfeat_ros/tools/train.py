@@ -23,8 +23,7 @@ PROG = 'semfeat-train'
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = OneLineParser(prog=PROG, description=__doc__.split('\n\n')[0],
-                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = OneLineParser.for_tool(PROG, __doc__)
     p.add_argument('--config', type=Path, required=True,
                    help='training YAML (see config/train.yaml)')
     p.add_argument('--out', type=Path, required=True, help='output directory (created)')
