@@ -310,6 +310,8 @@ def test_default_conf_is_valid_and_validated() -> None:
         merge_conf({'ceiling_labels': [3]})
     with pytest.raises(MapperConfigError, match='lm_max_depth_m'):
         merge_conf({'lm_min_depth_m': 50.0})
+    with pytest.raises(MapperConfigError, match='lm_lost_depth_m'):
+        merge_conf({'lm_lost_depth_m': 30.0})
     for key, bad in (('kf_min_distance_m', True),
                      ('odom_calib_sigma_rad', 0.0), ('odom_calibration', 'yes'),
                      ('odom_calib_min_pairs', 0)):

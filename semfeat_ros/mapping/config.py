@@ -67,6 +67,9 @@ default_conf: dict[str, Any] = {
     'lm_min_parallax_deg': 2.0,  # largest angle between its rays (deg)
     'lm_min_depth_m': 0.3,  # nearest allowed distance to an observing camera (m)
     'lm_max_depth_m': 40.0,  # farthest allowed distance to an observing camera (m)
+    'lm_lost_depth_m': 100.0,  # a landmark the smoother moves farther than this from its last
+    #                            observer (m) has lost its depth (rays nearly parallel): it is
+    #                            killed before its information vanishes and iSAM2 fails
     'dynamic_max_fraction': 0.2,  # tracks labelled dynamic more often than this never map
     'max_obs_per_keyframe': 120,  # landmark observations added per keyframe (spread over the
     #                               image, long-lived landmarks first): bounds the update cost
@@ -157,8 +160,8 @@ _CHOICES = {
 _POSITIVE = (
     'bearing_sigma_px', 'robust_k', 'outlier_chi2', 'max_reprojection_px', 'kf_parallax_deg',
     'kf_max_distance_m', 'init_min_parallax_deg', 'init_ransac_px', 'init_odom_gate_px',
-    'init_odom_max_angle_deg', 'lm_min_depth_m',
-    'lm_max_depth_m', 'ground_sigma_m', 'ground_max_distance_m', 'init_plane_threshold_m',
+    'init_odom_max_angle_deg', 'lm_min_depth_m', 'lm_max_depth_m', 'lm_lost_depth_m',
+    'ground_sigma_m', 'ground_max_distance_m', 'init_plane_threshold_m',
     'odom_min_sigma', 'odom_calib_sigma_rad', 'odom_calib_sigma_m', 'odom_calib_prior_bias',
     'odom_calib_prior_scale', 'gnss_max_sigma_m', 'gnss_min_sigma_m', 'gnss_max_age_s',
     'gnss_align_min_span_m', 'gnss_align_max_rms_m', 'gnss_gate_chi2', 'gnss_gate_sigma_m',
@@ -229,4 +232,8 @@ def merge_conf(conf: dict[str, Any] | None = None) -> dict[str, Any]:
         raise MapperConfigError(
             f'lm_max_depth_m ({out["lm_max_depth_m"]}) must exceed lm_min_depth_m '
             f'({out["lm_min_depth_m"]})')
+    if out['lm_lost_depth_m'] < out['lm_max_depth_m']:
+        raise MapperConfigError(
+            f'lm_lost_depth_m ({out["lm_lost_depth_m"]}) must be at least lm_max_depth_m '
+            f'({out["lm_max_depth_m"]})')
     return out

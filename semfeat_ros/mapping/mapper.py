@@ -110,7 +110,7 @@ class _Keyframe:
 class _Rec:
     rid: int
     factor: Any  # gtsam.NonlinearFactor
-    kind: str  # bearing, ground, odom, vrot, level, gnss, prior, link, anchor, recovery, dead
+    kind: str  # bearing ground odom vrot level gnss prior link anchor recovery dead marginal
     kid: int = -1
     lid: int = -1
     index: int = -1  # slot in the smoother's factor graph
@@ -262,7 +262,8 @@ class Mapper:
         self._floors_at = -1
         self.stats: dict[str, int] = dict(
             frames=0, keyframes=0, landmarks=0, update_failures=0, recoveries=0,
-            outlier_factors=0, landmarks_killed=0, gnss_accepted=0, gnss_rejected=0,
+            outlier_factors=0, landmarks_killed=0, landmarks_lost_depth=0,
+            gnss_accepted=0, gnss_rejected=0,
             tracking_lost=0, initialisations=0, rejected_rows=0,
             obs_beyond_90deg=0, rotation_factors=0, level_factors=0)
 
@@ -452,7 +453,9 @@ class Mapper:
         """
         if not self.conf['keep_full_graph']:
             raise MapperConfigError('batch_optimize needs keep_full_graph=True in the conf')
-        skip = {'anchor', 'recovery', 'dead'} | ({'prior'} if self._gnss_aligned else set())
+        skip = {'anchor', 'recovery', 'dead', 'marginal'}
+        if self._gnss_aligned:
+            skip.add('prior')
         graph = gtsam.NonlinearFactorGraph()
         keys: set[int] = set()
         for rec in self._all_recs:
@@ -624,6 +627,8 @@ class Mapper:
         dist = float(np.linalg.norm((T_wc @ self.T_cb)[:3, 3] - (T_kf @ self.T_cb)[:3, 3]))
         if dist < self.conf['kf_min_distance_m']:
             return False
+        if self._kf_odom.ok and self._kf_odom.dist < self.conf['kf_min_distance_m']:
+            return False  # the wheels say the base stood still: the estimate only jitters
         if dist > self.conf['kf_max_distance_m'] or n_inl < 2 * self.conf['min_tracking_inliers']:
             return True
         R_rel = T_kf[:3, :3].T @ T_wc[:3, :3]
@@ -1365,7 +1370,7 @@ class Mapper:
         without this keyframe's new landmarks, then the new pose alone; never raises."""
         new_lids = {int(gtsam.Symbol(k).index()) for k in values.keys()
                     if chr(gtsam.Symbol(k).chr()) == 'l'}
-        if self._rebuild(recs, values, ts, weak=True, events=events):
+        if self._rebuild(recs, values, ts, weak=True, events=events, marginals=True):
             self.stats['recoveries'] += 1
             events.append('update_recovered')
             return
@@ -1375,7 +1380,8 @@ class Mapper:
         pose_ts = {k: v for k, v in ts.items() if poses.exists(k)}
         without = [r for r in recs if r.lid not in new_lids]
         for attempt in (without, [r for r in without if r.kid == kid and r.kind == 'odom']):
-            if self._rebuild(attempt, poses, pose_ts, weak=True, events=events):
+            if self._rebuild(attempt, poses, pose_ts, weak=True, events=events,
+                             marginals=True):
                 kept = {r.rid for r in attempt}
                 for r in recs:
                     if r.rid not in kept:
@@ -1439,13 +1445,44 @@ class Mapper:
         if tr is not None:
             tr.lid = -1
 
+    def _marginal_recs(self, values: gtsam.Values) -> list[_Rec]:
+        """The smoother's marginal factors as records for a rebuilt smoother.
+
+        A fixed-lag smoother keeps what it knew of the states it marginalised as linear factors
+        on the remaining ones (GNSS-anchored heading, say). Each becomes a linear factor pinned
+        to the linearisation point it was computed at, so that it stays correct when the new
+        smoother moves or relinearises those variables. Empty when a factor involves a variable
+        missing from ``values`` (the caller then falls back to priors).
+        """
+        lin = self._smoother.getLinearizationPoint()
+        graph = self._smoother.getFactors()
+        out: list[_Rec] = []
+        for i in range(graph.size()):
+            f = graph.at(i)
+            if not isinstance(f, gtsam.LinearContainerFactor):
+                continue
+            point = gtsam.Values()
+            for k in f.keys():
+                if not (values.exists(k) and lin.exists(k)):
+                    return []
+                if chr(gtsam.Symbol(k).chr()) == 'x':
+                    point.insert(k, lin.atPose3(k))
+                else:
+                    point.insert(k, lin.atPoint3(k))
+            out.append(_Rec(self._next_rid, gtsam.LinearContainerFactor(f.factor(), point),
+                            'marginal'))
+            self._next_rid += 1
+        return out
+
     def _rebuild(self, new_recs: list[_Rec], new_values: gtsam.Values, new_ts: dict[int, float],
-                 weak: bool, events: list[str]) -> bool:
+                 weak: bool, events: list[str], marginals: bool = False) -> bool:
         """A fresh smoother from the window's records and current estimates plus new items.
 
-        The marginal information of the old smoother is replaced by a prior on the oldest
-        window pose (and on landmarks left with fewer than two bearings); ``weak`` adds loose
-        priors on every variable so that the system is determined whatever failed.
+        With ``marginals`` the old smoother's marginal factors (what it kept of the states it
+        marginalised: :meth:`_marginal_recs`) move into the new one; otherwise, or when it has
+        none, priors on the two oldest window poses stand in for them. Landmarks left with fewer
+        than two bearings get a prior; ``weak`` adds loose priors on every variable so that the
+        system is determined whatever failed.
         """
         c = self.conf
         values = gtsam.Values()
@@ -1465,14 +1502,17 @@ class Mapper:
                 else:
                     values.insert(k, new_values.atPoint3(k))
         ts.update(new_ts)
+        marg = self._marginal_recs(values) if marginals else []
+        # the old priors stay when the marginal factors carry over (they are the same graph)
+        replaced = ('anchor', 'prior') if not marg else ()
         keep = [r for rid, r in self._recs.items()
-                if rid not in self._pending_remove and r.kind not in ('anchor', 'prior')]
-        keep = [r for r in keep if all(values.exists(k) for k in r.factor.keys())]
+                if rid not in self._pending_remove and r.kind not in replaced]
+        keep = [r for r in keep if all(values.exists(k) for k in r.factor.keys())] + marg
         new_ok = [r for r in new_recs if all(values.exists(k) for k in r.factor.keys())]
         extra: list[_Rec] = []
-        # the two oldest window poses stand in for the lost marginal information (two poses
-        # also keep the scale of a camera-only map)
-        for n, k in enumerate(sorted(self._kfs)[:2]):
+        # without them the two oldest window poses stand in for the lost marginal information
+        # (two poses also keep the scale of a camera-only map)
+        for n, k in enumerate([] if marg else sorted(self._kfs)[:2]):
             if n > 0 and new_values.exists(X(k)):
                 break
             kind = 'prior' if k == 0 and not self._gnss_aligned else 'anchor'
@@ -1559,6 +1599,7 @@ class Mapper:
             lm = self._lms.get(lid)
             if lm is not None and est.exists(L(lid)):
                 lm.xyz = est.atPoint3(L(lid))
+        self._check_depths(est)
         self._check_outliers(lids)
         if self.conf['use_gnss'] and not self._gnss_aligned and self._gnss_pairs:
             self._try_gnss_align(events)
@@ -1598,6 +1639,28 @@ class Mapper:
             self._voxels.insert(np.asarray(xyz), lm.label, lid, lm.n_obs, seen, int(
                 levels.assign(np.array(self._storey(float(xyz[2]), seen, levels, lm.label)))),
                 lm.anchor)
+
+    def _check_depths(self, est: gtsam.Values) -> None:
+        """Kill the window's landmarks that the smoother moved beyond ``lm_lost_depth_m`` of
+        their last observer. A point with nearly parallel rays (a ceiling seen three times
+        ahead, a track that slid along a repeated texture) fits its bearings ever better as it
+        recedes along them, with no factor to stop it; its information then vanishes and the
+        next update fails as an indeterminate system (long drives: 1-10 window rebuilds each,
+        the variable 10-100 km out). Landmarks seen again are caught earlier by the
+        chi-square test; these are the ones nothing re-checks."""
+        lids = sorted(lid for lid, lm in self._lms.items() if lm.alive and est.exists(L(lid)))
+        if not lids:
+            return
+        P = gtsam.utilities.extractPoint3(est)  # every Point3 in key order: the landmarks
+        if P.shape[0] != len(lids):
+            P = np.array([est.atPoint3(L(lid)) for lid in lids])
+        centres = np.array([self._kf_T_wc[self._lms[lid].kf_ids[-1]][:3, 3] for lid in lids])
+        far = np.linalg.norm(P - centres, axis=1) > self.conf['lm_lost_depth_m']
+        for j in np.flatnonzero(far).tolist():
+            lm = self._lms[lids[j]]
+            lm.xyz = P[j]
+            self.stats['landmarks_lost_depth'] += 1
+            self._kill_landmark(lm.lid)
 
     def _check_outliers(self, lids: list[int]) -> None:
         """Chi-square test of the bearing factors of the landmarks just observed; factors
