@@ -604,6 +604,10 @@ class Mapper:
         lm_obs = [(int(frame.track_id[i]), i) for i in obs_idx]
         if self._is_keyframe(frame, mappable, T_wc, n_inl):
             self._add_keyframe(frame, mappable, T_wc, lm_obs, fix, events)
+            # the next predictions start from the smoothed pose: chained on the tracked (or
+            # odometry-predicted) one they drift away from the map (metres along a drive)
+            if self._history and self._history[-1][0] == frame.stamp_ns:
+                self._history[-1] = (frame.stamp_ns, self._kf_T_wc[-1])
             return self._kf_T_wc[-1], cov_c, n_inl, True
         return T_wc, cov_c, n_inl, False
 
