@@ -363,3 +363,25 @@ def test_session_odometry_leaves_roll_and_pitch_to_the_ramp() -> None:
     sig = np.sqrt(np.diag(d.covariance))  # (roll, pitch, yaw, x, y, z)
     np.testing.assert_allclose(sig[:3], [0.04, 0.04, 0.004])
     np.testing.assert_allclose(sig[3:], [0.04] * 3)
+
+
+def test_vehicle_camera_translation_on_an_arc() -> None:
+    # the base drives 2 m along a circle of radius 10 m (constant curvature), the camera sits
+    # 3.7 m ahead of it and 0.75 m up: its translation comes from the arc and the lever arm
+    from semfeat_ros.camera import Extrinsic
+
+    T_bc = Extrinsic((3.7, 0.0, 0.75), (0.0, 0.12, 0.0)).T_base_cam
+    radius, dist = 10.0, 2.0
+    th = dist / radius
+    T_wb_a = np.eye(4)
+    T_wb_b = np.eye(4)
+    T_wb_b[:3, :3] = geo.rpy_matrix(0.0, 0.0, th)
+    T_wb_b[:3, 3] = [radius * np.sin(th), radius * (1.0 - np.cos(th)), 0.0]
+    T_wc_a, T_wc_b = T_wb_a @ T_bc, T_wb_b @ T_bc
+    R = T_wc_b[:3, :3].T @ T_wc_a[:3, :3]  # x_b = R x_a + t
+    t = T_wc_b[:3, :3].T @ (T_wc_a[:3, 3] - T_wc_b[:3, 3])
+    chord = 2.0 * radius * np.sin(th / 2.0)
+    assert np.allclose(geo.vehicle_camera_translation(R, T_bc, chord), t, atol=1e-9)
+    # straight ahead, no rotation: the camera moves as the base, along the base's x axis
+    t0 = geo.vehicle_camera_translation(np.eye(3), T_bc, 1.0)
+    assert np.allclose(T_bc[:3, :3] @ -t0, [1.0, 0.0, 0.0])

@@ -232,6 +232,15 @@ def test_refine_pose_improves_a_perturbed_pose() -> None:
     assert rot_err_deg(Rr, R) < 0.1 and t_err_deg(tr, t) < 1.0
 
 
+def test_refine_rotation_with_the_translation_known() -> None:
+    rng = np.random.default_rng(19)
+    R, t, b0, b1, gt = make_scene(rng, n=300, out_frac=0.0, noise_px=0.5)
+    R_bad = g.rotation_from_vector(np.array([0.01, -0.02, 0.005])) @ R
+    Rr = g.refine_rotation(R_bad, t, b0, b1)
+    assert rot_err_deg(R_bad, R) > 1.0 and rot_err_deg(Rr, R) < 0.1
+    assert np.array_equal(g.refine_rotation(R_bad, t, b0[:2], b1[:2]), R_bad)
+
+
 def test_creeping_keeps_near_points() -> None:
     """3 cm steps (30 Hz at 3.6 km/h): whichever model wins, near points stay inliers."""
     rng = np.random.default_rng(18)

@@ -50,6 +50,10 @@ default_conf: dict[str, Any] = {
     #                                    5-point geometry of common tracks (deg; 0 disables);
     #                                    long drive, ORB: 0.1 -> ATE 0.53 m, 0.3 -> 0.23, 1 -> 0.34
     'vision_rotation_min_tracks': 20,  # common tracks (and inliers) needed for it
+    'vision_rotation_kinematic': True,  # with metric scale: refine that rotation with the
+    #                                     camera's translation known from the vehicle's motion
+    #                                     (base along its arc, camera at its lever arm). A free
+    #                                     translation trades pitch for a vertical tilt of it
     # ---- level floors (parking decks are level; ramps are not) ------------------------------
     'level_prior_sigma_deg': 1.0,  # keyframes whose vehicle tilt (estimate) is below
     #                                level_max_tilt_deg get a robust prior: base z-axis along
@@ -225,7 +229,7 @@ def merge_conf(conf: dict[str, Any] | None = None) -> dict[str, Any]:
         if not (isinstance(out[key], list | tuple) and all(isinstance(n, str) for n in out[key])):
             raise MapperConfigError(f'{key} must be a list of class names, got {out[key]!r}')
     for key in ('use_odometry', 'use_gnss', 'init_require_metric', 'keep_full_graph',
-                'init_from_odometry', 'odom_calibration'):
+                'init_from_odometry', 'odom_calibration', 'vision_rotation_kinematic'):
         if not isinstance(out[key], bool):
             raise MapperConfigError(f'{key} must be true or false, got {out[key]!r}')
     if out['lm_max_depth_m'] <= out['lm_min_depth_m']:

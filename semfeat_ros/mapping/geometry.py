@@ -327,6 +327,24 @@ def relative_pose_known_motion(R: np.ndarray, t: np.ndarray, b1: np.ndarray, b2:
     return RelativePose(np.asarray(R, dtype=np.float64), t, epi & good, pts)
 
 
+def vehicle_camera_translation(R: np.ndarray, T_base_cam: np.ndarray, distance: float
+                               ) -> np.ndarray:
+    """Camera translation of a vehicle that drove ``distance`` (m) along a circular arc.
+
+    The base (rear axle) moves along the chord of the arc: its x axis turned by half the
+    relative rotation. The camera sits at a lever arm from it (``T_base_cam``, (4, 4)), so that
+    a turn or a ramp's change of pitch also moves it sideways or up. ``R`` (3, 3) is the
+    camera's relative rotation in the two-view convention ``x_b = R x_a + t``; returns that
+    ``t`` (3,) (m, camera b frame).
+    """
+    R_bc, p_bc = T_base_cam[:3, :3], T_base_cam[:3, 3]
+    R_ab = R_bc @ R.T @ R_bc.T  # the base's rotation from a to b, in base a axes
+    half = so3_exp(0.5 * so3_log(R_ab))
+    p_ab = distance * half[:, 0]  # base b's origin in base a
+    t_ab_cam = R_bc.T @ (R_ab @ p_bc + p_ab - p_bc)  # camera b's centre in camera a
+    return -R @ t_ab_cam
+
+
 # ------------------------------------------------------------------------------------------------
 # Planes and alignment
 # ------------------------------------------------------------------------------------------------

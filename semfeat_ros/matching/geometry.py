@@ -514,6 +514,49 @@ def refine_pose(R: np.ndarray, t: np.ndarray, b0: np.ndarray, b1: np.ndarray,
     return R, t
 
 
+def refine_rotation(R: np.ndarray, t: np.ndarray, b0: np.ndarray, b1: np.ndarray,
+                    iterations: int = 10) -> np.ndarray:
+    """Levenberg-Marquardt on the rotation alone, the translation direction ``t`` held fixed.
+
+    Same angular epipolar error and motion convention (``x1 = R x0 + t``) as
+    :func:`refine_pose` on (N, 3) bearing pairs (inliers); for a motion whose direction is
+    known from elsewhere (a vehicle's kinematics), which removes the ambiguity between a pitch
+    (or yaw) rotation and a tilt of the translation. Returns the refined (3, 3) ``R``.
+    """
+    R = np.asarray(R, dtype=np.float64)
+    t = np.asarray(t, dtype=np.float64) / np.linalg.norm(t)
+    if b0.shape[0] < 3 or iterations <= 0:
+        return R
+    b0t = np.ascontiguousarray(b0.T)
+    b1t = np.ascontiguousarray(b1.T)
+    r, J = _pose_residuals(R, t, b0t, b1t, jacobian=True)
+    J = J[:, :3]
+    cost = float(r @ r)
+    lam = 1e-4
+    for _ in range(iterations):
+        g = J.T @ r
+        H = J.T @ J
+        improved = False
+        rel = 0.0
+        for _ in range(8):
+            step = np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-12), -g)
+            Rn = rotation_from_vector(step) @ R
+            rn, _ = _pose_residuals(Rn, t, b0t, b1t)
+            cn = float(rn @ rn)
+            if cn < cost:
+                rel = (cost - cn) / max(cost, 1e-300)
+                R, cost = Rn, cn
+                lam = max(lam / 10.0, 1e-9)
+                improved = True
+                break
+            lam *= 10.0
+        if not improved or rel < 1e-6:
+            break
+        r, J = _pose_residuals(R, t, b0t, b1t, jacobian=True)
+        J = J[:, :3]
+    return R
+
+
 # ---------------------------------------------------------------------------------------------
 # rotation-only model
 
