@@ -72,6 +72,10 @@ class MappingNodeConfig:
     odom_calibration: bool = param(
         True, "Learn the wheel odometry's yaw-rate bias, yaw scale and distance scale errors "
         'where GNSS anchors the map and remove them from later odometry', read_only=True)
+    vehicle_kinematics: bool = param(
+        True, 'The camera rides a car (base_link moves along its x axis, no slip): the keyframe '
+        'rotations are refined with the translation that motion gives the camera. Off for a '
+        'rig that moves sideways (handheld, a robot that strafes)', read_only=True)
     gnss_lever_arm_m: list[float] = param([1.2, 0.0, 1.5], 'GNSS antenna in base_link (m)',
                                           read_only=True)
     window_keyframes: int = param(15, 'Keyframes in the fixed-lag smoother', range=(3, 200),
@@ -103,6 +107,7 @@ def mapper_conf(c: MappingNodeConfig) -> dict[str, Any]:
     """The mapping core's conf for the node parameters."""
     return {'use_odometry': c.use_odometry, 'use_gnss': c.use_gnss,
             'odom_calibration': c.odom_calibration,
+            'vision_rotation_kinematic': c.vehicle_kinematics,
             'gnss_lever_arm_m': list(c.gnss_lever_arm_m),
             'window_keyframes': c.window_keyframes, 'kf_parallax_deg': c.kf_parallax_deg,
             'kf_max_distance_m': c.kf_max_distance_m, 'bearing_sigma_px': c.bearing_sigma_px,
