@@ -481,7 +481,34 @@ def refine_pose(R: np.ndarray, t: np.ndarray, b0: np.ndarray, b1: np.ndarray,
     if b0.shape[0] < 6 or iterations <= 0:
         return R, t
 
+    return _levenberg_marquardt(R, t, b0, b1, iterations, free_t=True)
+
+
+def refine_rotation(R: np.ndarray, t: np.ndarray, b0: np.ndarray, b1: np.ndarray,
+                    iterations: int = 10) -> np.ndarray:
+    """Levenberg-Marquardt on the rotation alone, the translation direction ``t`` held fixed.
+
+    Same angular epipolar error and motion convention (``x1 = R x0 + t``) as
+    :func:`refine_pose` on (N, 3) bearing pairs (inliers); for a motion whose direction is
+    known from elsewhere (a vehicle's kinematics), which removes the ambiguity between a pitch
+    (or yaw) rotation and a tilt of the translation. Returns the refined (3, 3) ``R``.
+    """
+    R = np.asarray(R, dtype=np.float64)
+    t = np.asarray(t, dtype=np.float64) / np.linalg.norm(t)
+    if b0.shape[0] < 3 or iterations <= 0:
+        return R
+    return _levenberg_marquardt(R, t, b0, b1, iterations, free_t=False)[0]
+
+
+def _levenberg_marquardt(R: np.ndarray, t: np.ndarray, b0: np.ndarray, b1: np.ndarray,
+                         iterations: int, free_t: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The loop of :func:`refine_pose` (``free_t``) and :func:`refine_rotation`: steps in the
+    left rotation increment and, with ``free_t``, a tangent step of the unit ``t``."""
+    n_par = 5 if free_t else 3
+
     def apply(p: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if not free_t:
+            return rotation_from_vector(p[:3]) @ R, t
         e1, e2 = _tangent_basis(t)
         tn = t + p[3] * e1 + p[4] * e2
         return rotation_from_vector(p[:3]) @ R, tn / np.linalg.norm(tn)
@@ -489,6 +516,7 @@ def refine_pose(R: np.ndarray, t: np.ndarray, b0: np.ndarray, b1: np.ndarray,
     b0t = np.ascontiguousarray(b0.T)
     b1t = np.ascontiguousarray(b1.T)
     r, J = _pose_residuals(R, t, b0t, b1t, jacobian=True)
+    J = J[:, :n_par]
     cost = float(r @ r)
     lam = 1e-4
     for _ in range(iterations):
@@ -511,50 +539,8 @@ def refine_pose(R: np.ndarray, t: np.ndarray, b0: np.ndarray, b1: np.ndarray,
         if not improved or rel < 1e-6:
             break
         r, J = _pose_residuals(R, t, b0t, b1t, jacobian=True)
+        J = J[:, :n_par]
     return R, t
-
-
-def refine_rotation(R: np.ndarray, t: np.ndarray, b0: np.ndarray, b1: np.ndarray,
-                    iterations: int = 10) -> np.ndarray:
-    """Levenberg-Marquardt on the rotation alone, the translation direction ``t`` held fixed.
-
-    Same angular epipolar error and motion convention (``x1 = R x0 + t``) as
-    :func:`refine_pose` on (N, 3) bearing pairs (inliers); for a motion whose direction is
-    known from elsewhere (a vehicle's kinematics), which removes the ambiguity between a pitch
-    (or yaw) rotation and a tilt of the translation. Returns the refined (3, 3) ``R``.
-    """
-    R = np.asarray(R, dtype=np.float64)
-    t = np.asarray(t, dtype=np.float64) / np.linalg.norm(t)
-    if b0.shape[0] < 3 or iterations <= 0:
-        return R
-    b0t = np.ascontiguousarray(b0.T)
-    b1t = np.ascontiguousarray(b1.T)
-    r, J = _pose_residuals(R, t, b0t, b1t, jacobian=True)
-    J = J[:, :3]
-    cost = float(r @ r)
-    lam = 1e-4
-    for _ in range(iterations):
-        g = J.T @ r
-        H = J.T @ J
-        improved = False
-        rel = 0.0
-        for _ in range(8):
-            step = np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-12), -g)
-            Rn = rotation_from_vector(step) @ R
-            rn, _ = _pose_residuals(Rn, t, b0t, b1t)
-            cn = float(rn @ rn)
-            if cn < cost:
-                rel = (cost - cn) / max(cost, 1e-300)
-                R, cost = Rn, cn
-                lam = max(lam / 10.0, 1e-9)
-                improved = True
-                break
-            lam *= 10.0
-        if not improved or rel < 1e-6:
-            break
-        r, J = _pose_residuals(R, t, b0t, b1t, jacobian=True)
-        J = J[:, :3]
-    return R
 
 
 # ---------------------------------------------------------------------------------------------
