@@ -50,10 +50,11 @@ default_conf: dict[str, Any] = {
     #                                    5-point geometry of common tracks (deg; 0 disables);
     #                                    long drive, ORB: 0.1 -> ATE 0.53 m, 0.3 -> 0.23, 1 -> 0.34
     'vision_rotation_min_tracks': 20,  # common tracks (and inliers) needed for it
-    'vision_rotation_kinematic': True,  # with metric scale: refine that rotation with the
-    #                                     camera's translation known from the vehicle's motion
-    #                                     (base along its arc, camera at its lever arm). A free
-    #                                     translation trades pitch for a vertical tilt of it
+    'vision_rotation_kinematic': True,  # with metric scale: that rotation's roll and pitch
+    #                                     from a refinement with the camera's translation known
+    #                                     from the vehicle's motion (base along its arc, camera
+    #                                     at its lever arm). A free translation trades pitch for
+    #                                     a vertical tilt of it
     # ---- level floors (parking decks are level; ramps are not) ------------------------------
     'level_prior_sigma_deg': 1.0,  # keyframes whose vehicle tilt (estimate) is below
     #                                level_max_tilt_deg get a robust prior: base z-axis along

@@ -329,7 +329,8 @@ def relative_pose_known_motion(R: np.ndarray, t: np.ndarray, b1: np.ndarray, b2:
 
 def vehicle_camera_translation(R: np.ndarray, T_base_cam: np.ndarray, distance: float
                                ) -> np.ndarray:
-    """Camera translation of a vehicle that drove ``distance`` (m) along a circular arc.
+    """Camera translation of a vehicle whose base moved ``distance`` (m, straight line) along
+    a circular arc.
 
     The base (rear axle) moves along the chord of the arc: its x axis turned by half the
     relative rotation. The camera sits at a lever arm from it (``T_base_cam``, (4, 4)), so that
