@@ -1690,14 +1690,16 @@ class Mapper:
         next update fails as an indeterminate system (long drives: 1-10 window rebuilds each,
         the variable 10-100 km out). Landmarks seen again are caught earlier by the
         chi-square test; these are the ones nothing re-checks."""
-        lids = sorted(lid for lid, lm in self._lms.items() if lm.alive and est.exists(L(lid)))
+        lids = sorted(lid for lid in self._lms if est.exists(L(lid)))
         if not lids:
             return
         P = gtsam.utilities.extractPoint3(est)  # every Point3 in key order: the landmarks
         if P.shape[0] != len(lids):
             P = np.array([est.atPoint3(L(lid)) for lid in lids])
-        centres = np.array([self._kf_T_wc[self._lms[lid].kf_ids[-1]][:3, 3] for lid in lids])
+        lms = [self._lms[lid] for lid in lids]
+        centres = np.array([self._kf_T_wc[lm.kf_ids[-1]][:3, 3] for lm in lms])
         far = np.linalg.norm(P - centres, axis=1) > self.conf['lm_lost_depth_m']
+        far &= np.array([lm.alive for lm in lms])  # the dead ones are out of the graph already
         for j in np.flatnonzero(far).tolist():
             lm = self._lms[lids[j]]
             lm.xyz = P[j]
