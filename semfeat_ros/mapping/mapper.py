@@ -1100,10 +1100,11 @@ class Mapper:
 
     def _new_landmark(self, tid: int, tr: _Track, xyz: np.ndarray, kids: list[int],
                       recs: list[_Rec], values: gtsam.Values, kid_now: int,
-                      ts: dict[int, float] | None = None, rays: np.ndarray | None = None
-                      ) -> int:
+                      ts: dict[int, float] | None = None, rays: np.ndarray | None = None,
+                      max_par: float | None = None) -> int:
         """Create landmark ``L(lid)`` of track ``tid`` at ``xyz`` (m) with bearing factors from
-        keyframes ``kids``; ``rays`` are those observations in the map frame if known."""
+        keyframes ``kids``; ``rays`` are those observations in the map frame if known, and
+        ``max_par`` their largest angle to the first (rad)."""
         lid = self._next_lid
         self._next_lid += 1
         label = self._label_of(tr)
@@ -1122,7 +1123,8 @@ class Mapper:
         u, v = tr.kf_obs[k_anchor][1]
         lm.anchor = (self._kf_stamps[k_anchor], float(u), float(v))
         lm.ray0 = rays[0]
-        lm.max_par = float(angle_between(rays[:1], rays).max())
+        lm.max_par = (float(angle_between(rays[:1], rays).max()) if max_par is None
+                      else max_par)
         self._lms[lid] = lm
         tr.lid = lid
         lm.last_kf = kid_now
@@ -1179,13 +1181,25 @@ class Mapper:
         if len(acc) > c['max_new_landmarks']:
             px = np.array([self._tracks[cands[j][0]].kf_obs[kid][1] for j in acc])
             acc = acc[self._spread(px, tri2.max_parallax[acc], c['max_new_landmarks'])]
+        if not len(acc):
+            return []
+        # the accepted tracks' good observations, grouped by track (index_a is sorted), and
+        # the largest angle of each group's rays to its first
+        rows = np.flatnonzero(good_obs & np.isin(index_a, acc))
+        first = np.flatnonzero(np.r_[True, index_a[rows[1:]] != index_a[rows[:-1]]])
+        ray0 = rays_a[rows[first]]
+        size = np.diff(np.r_[first, len(rows)])
+        max_par = np.maximum.reduceat(angle_between(np.repeat(ray0, size, axis=0),
+                                                    rays_a[rows]), first)
+        group = {int(index_a[rows[f]]): g for g, f in enumerate(first.tolist())}
         new = []
         for j in acc.tolist():
             tid = cands[j][0]
-            rows = np.flatnonzero((index_a == j) & good_obs)
-            used = [obs_kid[o] for o in rows]
-            new.append(self._new_landmark(tid, self._tracks[tid], tri2.points[j], used, recs,
-                                          values, kid, ts, rays_a[rows]))
+            g = group[j]
+            r = rows[first[g]:first[g] + size[g]]
+            new.append(self._new_landmark(tid, self._tracks[tid], tri2.points[j],
+                                          [obs_kid[o] for o in r.tolist()], recs, values, kid,
+                                          ts, rays_a[r], float(max_par[g])))
         return new
 
     def _add_ground_recs(self, kid: int, lids: list[int], recs: list[_Rec]) -> None:
