@@ -6,11 +6,13 @@ keyframe the new factors and values, keys from ``gtsam.symbol_shorthand`` (``X``
 ``L`` landmarks). Marginalised landmarks move into a voxel-bounded map, so per-keyframe cost and
 smoother memory stay flat on a long drive.
 
-Pipeline per frame: validate -> label votes -> (two-view initialisation | pose tracking against
-the landmarks) -> keyframe decision -> keyframe: bearing factors of the tracked landmarks,
-odometry between-factor, GNSS factor, new landmarks triangulated from tracks seen in enough
-keyframes with enough parallax (static classes only), ground-plane factors -> smoother update
-(failures recovered, never raised) -> marginalisation bookkeeping -> outlier rejection.
+Pipeline per frame: validate -> the last keyframe's deferred work (outlier rejection of its
+landmarks, its two-view rotation to the keyframe before, whose factor joins the next update) ->
+label votes -> (two-view initialisation | pose tracking against the landmarks) -> keyframe
+decision -> keyframe: bearing factors of the tracked landmarks, odometry between-factor, GNSS
+factor, new landmarks triangulated from tracks seen in enough keyframes with enough parallax
+(static classes only), ground-plane factors -> smoother update (failures recovered, never
+raised) -> marginalisation bookkeeping.
 
 Frames: poses returned are base_link in ``map`` (z up, m); internally the pose variables are the
 camera optical frame in ``map`` so that bearings need no extrinsic inside the factors.
