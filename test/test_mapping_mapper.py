@@ -364,13 +364,16 @@ def test_window_stays_bounded(with_odometry: Run) -> None:
     assert np.median(kf_ms) < 250  # generous: CI machines are shared; see the benchmark
 
 
-def test_benchmark_smoke() -> None:
+def test_benchmark_smoke(capsys: pytest.CaptureFixture[str]) -> None:
     res = benchmark_update_time(20, odometry=True, progress=False)
     # with odometry the map starts at the first frame: one keyframe per update from 0
     assert res.keyframe.tolist() == list(range(20)) and np.all(res.update_ms > 0)
     assert np.all(res.update_cpu_ms > 0) and np.isfinite(res.ate_sim3_m)
     assert res.buckets(10)[0][:2] == (0, 9)
+    assert res.frame_keyframe.sum() == 20 and len(res.frame_keyframe) == len(res.frame_ms)
     assert benchmark_cli(['--keyframes', '3']) == 2
+    assert benchmark_cli(['--keyframes', '10', '--odometry']) == 0
+    assert 'other frames: median' in capsys.readouterr().out
 
 
 def test_writers_roundtrip_mapper_output(camera_only: Run, tmp_path) -> None:

@@ -115,9 +115,10 @@ def cli(argv: list[str] | None = None) -> int:
     for a, b, med, p90, cpu in res.buckets():
         print(f'{a:5d}-{b:<5d}   {med:9.1f} {p90:8.1f} {cpu:12.1f}')
     other = res.frame_ms[~res.frame_keyframe]
-    print(f'all keyframes: median {np.median(res.update_ms):.1f} ms; other frames: median '
-          f'{np.median(other):.1f} ms, p90 {np.percentile(other, 90):.1f} ms; every frame: mean '
-          f'{np.mean(res.frame_ms):.1f} ms; ATE (Sim3) {res.ate_sim3_m:.3f} m')
+    rest = (f'median {np.median(other):.1f} ms, p90 {np.percentile(other, 90):.1f} ms'
+            if len(other) else 'none')
+    print(f'all keyframes: median {np.median(res.update_ms):.1f} ms; other frames: {rest}; '
+          f'every frame: mean {np.mean(res.frame_ms):.1f} ms; ATE (Sim3) {res.ate_sim3_m:.3f} m')
     print('stats:', res.stats)
     return 0
 
