@@ -953,9 +953,8 @@ class Mapper:
         (:meth:`_settle`), and its factor joins the next keyframe's update: a keyframe's update
         does not carry it (about 5 ms of 30 on the synthetic benchmark), and the robust factor
         is first linearised at kb's smoothed pose instead of its tracked one (the far-tracks
-        test drive: ATE 0.132 -> 0.068 m). A pair still queued here goes into ``recs``."""
-        if self._rot_job is not None:
-            self._run_rotation_job(recs)
+        test drive: ATE 0.132 -> 0.068 m). The factor joins the next keyframe's records, not
+        this keyframe's ``recs``."""
         c = self.conf
         if c['vision_rotation_sigma_deg'] <= 0:
             return
@@ -1686,10 +1685,7 @@ class Mapper:
             lm = self._lms.get(lid)
             if lm is not None and est.exists(L(lid)):
                 lm.xyz = est.atPoint3(L(lid))
-        if self._checks_due is None:
-            self._checks_due = list(lids)
-        else:  # two updates before a frame settled them (an initialisation): check both
-            self._checks_due += sorted(set(lids) - set(self._checks_due))
+        self._checks_due = list(lids)  # one commit per frame; the frame's _settle ran before
         if self.conf['use_gnss'] and not self._gnss_aligned and self._gnss_pairs:
             self._try_gnss_align(events)
 
