@@ -317,10 +317,25 @@ def test_segmentation_loss_ignores_255() -> None:
     sub = labels[:, 1::2, 1::2]
     keep = sub != 255
     expected = F.cross_entropy(logits.permute(0, 2, 3, 1)[keep], sub[keep])
-    torch.testing.assert_close(segmentation_loss(logits, labels, full_resolution=False),
-                               expected)
-    with pytest.raises(ModelInputError, match='integer multiple'):
-        segmentation_loss(logits, labels[:, :3, :4], full_resolution=False)
+    torch.testing.assert_close(segmentation_loss(logits, labels, stride=2), expected)
+    with pytest.raises(ModelInputError, match='multiple of the loss stride'):
+        segmentation_loss(logits, labels[:, :3, :4], stride=2)
+
+
+def test_segmentation_loss_between_logit_and_label_resolution() -> None:
+    torch.manual_seed(1)
+    logits = torch.randn(2, 19, 2, 3)  # stride 4 for 8 x 12 labels
+    labels = torch.randint(0, 19, (2, 8, 12))
+    labels[0, :, 5] = 255
+    # stride 2: logits upsampled to the 4 x 6 grid, labels at pixels 2i + 1
+    up = F.interpolate(logits, size=(4, 6), mode='bilinear', align_corners=False)
+    sub = labels[:, 1::2, 1::2]
+    keep = sub != 255
+    expected = F.cross_entropy(up.permute(0, 2, 3, 1)[keep], sub[keep])
+    torch.testing.assert_close(segmentation_loss(logits, labels, stride=2), expected)
+    assert not torch.allclose(segmentation_loss(logits, labels, stride=4), expected)
+    with pytest.raises(ModelInputError, match='finer than the loss stride'):
+        segmentation_loss(torch.randn(2, 19, 8, 12), labels, stride=2)
 
 
 def test_multitask_loss_weights() -> None:
@@ -402,5 +417,5 @@ def test_class_balance_weights() -> None:
     weights = np.linspace(0.5, 3.0, 19).astype(np.float32)
     _, logs = MultiTaskLoss({}, weights)(pred, batch)
     expected = segmentation_loss(pred['segmentation_logits'], batch['label'],
-                                 torch.from_numpy(weights), full_resolution=False)
+                                 torch.from_numpy(weights), stride=4)
     assert logs['seg'] == pytest.approx(float(expected.detach()), rel=1e-5)
