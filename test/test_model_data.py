@@ -295,6 +295,8 @@ def test_errors(tmp_path: Path) -> None:
         PairGenerator([], {**SMALL_DATA, 'crop_size': [100, 96]}, use_photos=False)
     with pytest.raises(ModelConfigError, match='unknown config key data.photometric.hue'):
         PairGenerator([], {**SMALL_DATA, 'photometric': {'hue': 1}}, use_photos=False)
+    with pytest.raises(DatasetError, match="'module:no_such_package/x.png' matches no file"):
+        PairGenerator([], {**SMALL_DATA, 'photos': ['module:no_such_package/x.png']})
     with pytest.raises(DatasetError, match='reserved for evaluation'):
         resolve_photo_paths([str(Path(__file__).resolve().parents[2] / 'shared' / 'data'
                                  / 'real_fisheye_calib' / '*')])

@@ -7,7 +7,8 @@ Sources
   ``frame_long_side`` px, the resolution the :class:`FeatureExtractor` runs the network at, so
   training and inference see objects at the same scale.
 * **Real photographs** that ship inside installed packages (``photos`` in the config; defaults:
-  the five Balbianello photos in gtsam's data directory and matplotlib's ``grace_hopper.jpg``).
+  the five Balbianello photos in gtsam's data directory and matplotlib's ``grace_hopper.jpg``;
+  ``config/train.yaml`` adds the sample photos of scikit-image and scikit-learn).
   They have no labels (segmentation loss ignores them) and train only the keypoint and
   descriptor heads, self-supervised SuperPoint-style (homographic pairs; the keypoint candidates
   are homographically adapted, see :func:`adapted_corner_score`). The evaluation images of
@@ -214,7 +215,8 @@ def resolve_photo_paths(patterns: Sequence[str]) -> list[Path]:
     """Expand photo patterns: plain globs or ``module:PKG/rel/glob`` inside an installed package.
 
     The package is located with ``importlib.util.find_spec`` (not imported). Missing packages or
-    patterns matching nothing are skipped; the result is sorted and deduplicated.
+    patterns matching nothing are skipped here (:class:`PairGenerator` refuses them); the result
+    is sorted and deduplicated.
     """
     out: set[Path] = set()
     for pat in patterns:
@@ -662,6 +664,10 @@ class PairGenerator:
                                  if o >= c['drive_min_overlap'] and a != b]
         self.photo_frames: list[int] = []
         if use_photos:
+            for pat in c['photos']:  # a missing photo would silently change the training data
+                if not resolve_photo_paths([pat]):
+                    raise DatasetError(f'photos: {pat!r} matches no file (is its package '
+                                       f'installed? see requirements.txt)')
             paths = resolve_photo_paths(c['photos'])
             base = len(self.frames)
             self.frames += load_photo_frames(paths, int(c['frame_long_side']),
