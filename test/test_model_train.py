@@ -190,6 +190,9 @@ def test_shipped_config_files_match_the_code() -> None:
         load_train_conf({'stepz': 3})
     with pytest.raises(ModelConfigError, match='freeze_levels'):
         load_train_conf({'freeze_levels': 9})
+    with pytest.raises(ModelConfigError, match='multiples of the network stride, 8 px'):
+        load_train_conf({'network': {'encoder_channels': [8, 8, 8]},
+                         'data': {'crop_size': [96, 100]}})
 
 
 def test_state_dict_allclose() -> None:

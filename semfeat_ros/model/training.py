@@ -117,6 +117,10 @@ def load_train_conf(conf: dict[str, Any] | None) -> dict[str, Any]:
                                f'{c["freeze_levels"]!r}')
     if not float(c['lr']) > 0:
         raise ModelConfigError(f'lr must be > 0, got {c["lr"]!r}')
+    stride = 2 ** len(c['network']['encoder_channels'])
+    if any(int(x) % stride for x in c['data']['crop_size']):
+        raise ModelConfigError(f'data.crop_size {c["data"]["crop_size"]} must be multiples of '
+                               f'the network stride, {stride} px')
     return c
 
 
