@@ -7,8 +7,7 @@ Sources
   ``frame_long_side`` px, the resolution the :class:`FeatureExtractor` runs the network at, so
   training and inference see objects at the same scale.
 * **Real photographs** that ship inside installed packages (``photos`` in the config; defaults:
-  the five Balbianello photos in gtsam's data directory and matplotlib's ``grace_hopper.jpg``;
-  ``config/train.yaml`` adds the sample photos of scikit-image and scikit-learn).
+  the five Balbianello photos in gtsam's data directory and matplotlib's ``grace_hopper.jpg``).
   They have no labels (segmentation loss ignores them) and train only the keypoint and
   descriptor heads, self-supervised SuperPoint-style (homographic pairs; the keypoint candidates
   are homographically adapted, see :func:`adapted_corner_score`). The evaluation images of
