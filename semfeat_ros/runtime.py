@@ -75,6 +75,7 @@ class Counters:
     processed: int = 0
     dropped: int = 0
     rejected: int = 0
+    waiting: int = 0  # inputs skipped before the first CameraInfo (not an input error)
     errors: int = 0
 
 

@@ -149,9 +149,10 @@ def test_bad_input_barrage_keeps_node_alive(ros_context, untrained_weights: Path
     try:
         assert h.wait(lambda: h.pub_img.get_subscription_count() > 0)
         good = numpy_to_image(frame(0), 'rgb8', stamp_ns=10, frame_id='cam', msg_cls=Image)
-        # No CameraInfo yet: rejected, counted.
+        # No CameraInfo yet: skipped and counted, but not an input error.
         h.pub_img.publish(good)
-        assert h.wait(lambda: h.node.health.counters.rejected >= 1)
+        assert h.wait(lambda: h.node.health.counters.waiting >= 1)
+        assert h.node.health.counters.rejected == 0
         h.send_info()
         time.sleep(0.2)
         bad: list[Image] = []
@@ -166,18 +167,19 @@ def test_bad_input_barrage_keeps_node_alive(ros_context, untrained_weights: Path
                                   msg_cls=Image))  # size/aspect mismatch with CameraInfo
         for i, msg in enumerate(bad):
             h.pub_img.publish(msg)
-            assert h.wait(lambda n=i: h.node.health.counters.rejected >= 2 + n), msg.encoding
+            assert h.wait(lambda n=i: h.node.health.counters.rejected >= 1 + n), msg.encoding
         # A NaN CameraInfo is rejected and the previous camera stays in use.
         nan_info = model_to_camera_info(h.camera, stamp_ns=1, frame_id='c', msg_cls=CameraInfo)
         nan_info.k[0] = float('nan')
         h.pub_info.publish(nan_info)
-        assert h.wait(lambda: h.node.health.counters.rejected >= 2 + len(bad))
+        assert h.wait(lambda: h.node.health.counters.rejected >= 1 + len(bad))
         before = len(h.features)
         h.pub_img.publish(good)
         assert h.wait(lambda: len(h.features) > before), 'next good frame not processed'
         status = h.node.health.status()
         values = {kv.key: kv.value for kv in status.values}
-        assert int(values['errors_rejected']) >= 2 + len(bad)
+        assert int(values['errors_rejected']) >= 1 + len(bad)
+        assert int(values['frames_waiting_camera_info']) >= 1
         assert values['last_error']
     finally:
         h.close()

@@ -143,20 +143,21 @@ def test_bad_input_and_missing_camera_info(harness: Harness) -> None:
     pts, desc = world()
     rng = np.random.default_rng(2)
     kp, d, _ = observe(pts, desc, 0.0, rng)
-    h.send(5, kp, d)  # no CameraInfo yet
-    assert h.wait(lambda: h.node.health.counters.rejected == 1)
+    h.send(5, kp, d)  # no CameraInfo yet: skipped, not an input error
+    assert h.wait(lambda: h.node.health.counters.waiting == 1)
+    assert h.node.health.counters.rejected == 0
     bad_info = model_to_camera_info(CAM, stamp_ns=0, frame_id='c', msg_cls=CameraInfo)
     bad_info.k[4] = float('nan')
     h.pub_info.publish(bad_info)
-    assert h.wait(lambda: h.node.health.counters.rejected == 2)
+    assert h.wait(lambda: h.node.health.counters.rejected == 1)
     h.pub_info.publish(model_to_camera_info(CAM, stamp_ns=0, frame_id='c', msg_cls=CameraInfo))
     time.sleep(0.2)
     wrong = PointCloud2(height=1, width=3, point_step=4, row_step=12, data=bytes(12))
     h.pub.publish(wrong)  # not the features layout
-    assert h.wait(lambda: h.node.health.counters.rejected == 3)
+    assert h.wait(lambda: h.node.health.counters.rejected == 2)
     h.send(10, kp, d)
     h.send(10, kp, d)  # repeated stamp
-    assert h.wait(lambda: h.node.health.counters.rejected == 4)
+    assert h.wait(lambda: h.node.health.counters.rejected == 3)
     kp2, d2, _ = observe(pts, desc, 0.4, rng)
     h.send(20, kp2, d2)
     assert h.wait(lambda: len(h.tracks) == 2)

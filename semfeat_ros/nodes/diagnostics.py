@@ -53,6 +53,12 @@ class NodeHealth:
         self.last_error = reason
         self._node.get_logger().warning(f'rejected input: {reason}', throttle_duration_sec=2.0)
 
+    def on_waiting(self, reason: str) -> None:
+        """Count an input skipped before the node can use it (no CameraInfo yet): not an
+        error of the input, e.g. the first frame of a replay racing its camera's discovery."""
+        self.counters.waiting += 1
+        self._node.get_logger().info(f'skipped input: {reason}', throttle_duration_sec=2.0)
+
     def on_error(self, exc: BaseException) -> None:
         """Count an internal error (processing failed on an accepted input)."""
         self.counters.errors += 1
@@ -83,6 +89,7 @@ class NodeHealth:
             'compute_p50_s': fmt(c50), 'compute_p95_s': fmt(c95),
             'frames_received': str(c.received), 'frames_processed': str(c.processed),
             'frames_dropped': str(c.dropped), 'errors_rejected': str(c.rejected),
+            'frames_waiting_camera_info': str(c.waiting),
             'processing_errors': str(c.errors), 'last_error': self.last_error,
             **self.extra,
         }

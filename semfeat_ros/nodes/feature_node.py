@@ -150,7 +150,7 @@ class FeatureNode(Node):
         with self._camera_lock:
             camera = self._camera
         if camera is None and self.get_parameter('require_camera_info').value:
-            self.health.on_reject('no CameraInfo received yet on '
+            self.health.on_waiting('no CameraInfo received yet on '
                                   f'{self.conf.camera_info_topic}; frame skipped')
             return
         try:

@@ -201,7 +201,7 @@ class MappingNode(Node):
             return
         with self._lock:
             if self.session is None:
-                self.health.on_reject('no CameraInfo received yet; tracks skipped')
+                self.health.on_waiting('no CameraInfo received yet; tracks skipped')
                 return
             order = self.stamps.check(tr.stamp_ns)
             if order == 'duplicate':

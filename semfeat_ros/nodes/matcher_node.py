@@ -146,7 +146,7 @@ class MatcherNode(Node):
             self.health.on_reject(f'features: {exc}')
             return
         if self._camera is None:
-            self.health.on_reject('no CameraInfo received yet; features skipped')
+            self.health.on_waiting('no CameraInfo received yet; features skipped')
             return
         order = self.stamps.check(feats.stamp_ns)
         if order == 'duplicate':
