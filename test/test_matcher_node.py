@@ -146,6 +146,7 @@ def test_bad_input_and_missing_camera_info(harness: Harness) -> None:
     h.send(5, kp, d)  # no CameraInfo yet: skipped, not an input error
     assert h.wait(lambda: h.node.health.counters.waiting == 1)
     assert h.node.health.counters.rejected == 0
+    assert h.node.health.status().message == 'no output yet: 1 inputs waiting for CameraInfo'
     bad_info = model_to_camera_info(CAM, stamp_ns=0, frame_id='c', msg_cls=CameraInfo)
     bad_info.k[4] = float('nan')
     h.pub_info.publish(bad_info)

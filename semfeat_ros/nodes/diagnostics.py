@@ -78,6 +78,8 @@ class NodeHealth:
             level, message = DiagnosticStatus.WARN, f'{c.rejected} inputs rejected'
         if c.received and not c.processed:
             level, message = DiagnosticStatus.WARN, 'no output yet'
+            if c.waiting:  # e.g. a wrong camera_info topic: say so where operators look
+                message += f': {c.waiting} inputs waiting for CameraInfo'
 
         def fmt(x: float) -> str:
             return 'nan' if math.isnan(x) else f'{x:.4f}'
