@@ -210,27 +210,31 @@ def load_shard_frames(path: str | Path, long_side: int
     return frames, pairs
 
 
-def resolve_photo_paths(patterns: Sequence[str]) -> list[Path]:
+def resolve_photo_paths(patterns: Sequence[str], strict: bool = False) -> list[Path]:
     """Expand photo patterns: plain globs or ``module:PKG/rel/glob`` inside an installed package.
 
     The package is located with ``importlib.util.find_spec`` (not imported). Missing packages or
-    patterns matching nothing are skipped here (:class:`PairGenerator` refuses them); the result
-    is sorted and deduplicated.
+    patterns matching nothing are skipped, or with ``strict`` refused (a missing photo would
+    silently change the training data); the result is sorted and deduplicated.
     """
     out: set[Path] = set()
     for pat in patterns:
+        matches: list[str] = []
         if pat.startswith('module:'):
             mod, _, rel = pat[len('module:'):].partition('/')
             try:
                 spec = importlib.util.find_spec(mod)
             except (ImportError, ValueError):
                 spec = None
-            if spec is None or not spec.submodule_search_locations:
-                continue
-            base = Path(list(spec.submodule_search_locations)[0])
-            out.update(Path(p) for p in glob.glob(str(base / rel)))
+            if spec is not None and spec.submodule_search_locations:
+                base = Path(list(spec.submodule_search_locations)[0])
+                matches = glob.glob(str(base / rel))
         else:
-            out.update(Path(p) for p in glob.glob(pat))
+            matches = glob.glob(pat)
+        if strict and not matches:
+            raise DatasetError(f'photos: {pat!r} matches no file (is its package installed? '
+                               f'see requirements.txt)')
+        out.update(Path(p) for p in matches)
     if any('real_fisheye_calib' in str(p) for p in out):
         raise DatasetError('photos: real_fisheye_calib is reserved for evaluation and must never '
                            'be used for training')
@@ -663,11 +667,7 @@ class PairGenerator:
                                  if o >= c['drive_min_overlap'] and a != b]
         self.photo_frames: list[int] = []
         if use_photos:
-            for pat in c['photos']:  # a missing photo would silently change the training data
-                if not resolve_photo_paths([pat]):
-                    raise DatasetError(f'photos: {pat!r} matches no file (is its package '
-                                       f'installed? see requirements.txt)')
-            paths = resolve_photo_paths(c['photos'])
+            paths = resolve_photo_paths(c['photos'], strict=True)
             base = len(self.frames)
             self.frames += load_photo_frames(paths, int(c['frame_long_side']),
                                              int(c['photo_adaptation']), self.seed)

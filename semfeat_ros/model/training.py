@@ -100,7 +100,7 @@ def load_train_conf(conf: dict[str, Any] | None) -> dict[str, Any]:
                                f'subset of {sorted(default_train_conf)}')
     c = {**copy.deepcopy(default_train_conf), **conf}
     c['network'] = {**SemFeatNet.default_conf, **(c['network'] or {})}
-    SemFeatNet(c['network'])  # validates
+    stride = SemFeatNet(c['network']).stride  # validates; input sizes are multiples of it
     c['loss'] = {**default_loss_conf, **(c['loss'] or {})}
     MultiTaskLoss(c['loss'])  # validates
     c['data'] = merge_conf(default_data_conf, c['data'], 'data')
@@ -117,7 +117,6 @@ def load_train_conf(conf: dict[str, Any] | None) -> dict[str, Any]:
                                f'{c["freeze_levels"]!r}')
     if not float(c['lr']) > 0:
         raise ModelConfigError(f'lr must be > 0, got {c["lr"]!r}')
-    stride = 2 ** len(c['network']['encoder_channels'])
     if any(int(x) % stride for x in c['data']['crop_size']):
         raise ModelConfigError(f'data.crop_size {c["data"]["crop_size"]} must be multiples of '
                                f'the network stride, {stride} px')
