@@ -28,7 +28,7 @@ class FrontendConfig:
     """Settings of the front end (see the FeatureExtractor conf for details)."""
 
     weights: str | None = None  # None: the shipped weights
-    num_threads: int = 2  # torch intra-op threads
+    num_threads: int = 2  # network intra-op threads (torch or onnxruntime)
     max_keypoints: int = 1000  # top-k by score
     score_threshold: float = 0.05  # minimum heatmap score
     nms_radius: int = 3  # px at network resolution
@@ -37,6 +37,7 @@ class FrontendConfig:
     mask_resolution: str = 'input'  # 'seg' (1/4 network), 'network' or 'input'
     resize_max: int = 640  # px, longer side of the network input
     bf16: bool = False  # bfloat16 autocast of the network (FeatureExtractor conf 'bf16')
+    backend: str = 'auto'  # network runtime: 'auto', 'onnxruntime' or 'torch' (FeatureExtractor)
     size_tolerance: float = 0.01  # relative aspect mismatch tolerated between image and camera
 
 
@@ -73,13 +74,18 @@ class SemanticFrontend:
             'nms_radius': conf.nms_radius, 'remove_borders': conf.border,
             'drop_classes': list(conf.drop_classes), 'num_threads': conf.num_threads,
             'mask_resolution': conf.mask_resolution, 'resize_max': conf.resize_max,
-            'bf16': conf.bf16})
+            'bf16': conf.bf16, 'backend': conf.backend})
         self.last_count = 0
         self._scaled: dict[tuple, CameraModel] = {}
 
     def describe(self) -> str:
         return (f'SemFeatNet ({sum(p.numel() for p in self.extractor.model.parameters())} '
-                f'parameters), input resized to a longer side of {self.conf.resize_max} px')
+                f'parameters) on {self.extractor.backend}, input resized to a longer side of '
+                f'{self.conf.resize_max} px')
+
+    def prepare(self, width: int, height: int) -> None:
+        """Ready the network for ``width x height`` frames (see FeatureExtractor.prepare)."""
+        self.extractor.prepare(width, height)
 
     def camera_for(self, camera: CameraModel, width: int, height: int) -> CameraModel:
         """``camera`` rescaled to a ``width x height`` frame (same lens, resized image).

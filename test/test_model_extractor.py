@@ -240,9 +240,11 @@ def test_benchmark_runs_and_labels_random_init(tmp_path: Path) -> None:
     image = np.random.default_rng(0).integers(0, 255, (256, 320, 3), dtype=np.uint8)
     res = run(None, True, 1, 2, image, sizes=((128, 96),), warmup=0)
     assert res['weights'] == 'random-init (timing only)'
-    for key in ('fp32', 'fp32_fused_channels_last', 'bf16_channels_last'):
+    for key in ('fp32', 'fp32_fused_channels_last', 'bf16_channels_last', 'onnxruntime'):
         assert res['forward_128x96'][key] > 0
-    assert res['extract_320x256'] > 0 and res['sift_1000_320x256'] > 0
+    assert res['extract_backend'] == 'onnxruntime'
+    assert res['extract_320x256'] > 0 and res['extract_320x256_torch'] > 0
+    assert res['sift_1000_320x256'] > 0
     assert cli(['--weights', str(tmp_path / 'none.safetensors'), '--repeats', '1']) == 1
 
 
@@ -274,3 +276,72 @@ def test_weights_of_the_v1_layout_still_load(tmp_path: Path) -> None:
     path.with_suffix('.json').write_text(json.dumps(cfg))
     loaded, _ = weights_io.load_weights(path)
     assert loaded.kp_pixels is None and weights_io.state_dict_allclose(net, loaded)
+
+
+def test_onnxruntime_backend_agrees_with_torch() -> None:
+    torch.manual_seed(0)
+    net = SemFeatNet(SMALL).eval()
+    image = np.random.default_rng(5).integers(0, 255, (300, 400, 3), dtype=np.uint8)
+    eager = _extractor(net, backend='torch', detection_threshold=0.0, max_keypoints=200)
+    ort = _extractor(net, backend='onnxruntime', detection_threshold=0.0, max_keypoints=200)
+    assert (eager.backend, ort.backend) == ('torch', 'onnxruntime')
+    pa, size_a = eager.forward(image)
+    pb, size_b = ort.forward(image)
+    assert size_a == size_b == (640, 480)  # upscaled to resize_max
+    for k in ('heatmap', 'descriptors', 'segmentation_logits'):
+        assert pb[k].dtype == torch.float32 and pb[k].shape == pa[k].shape
+        torch.testing.assert_close(pa[k], pb[k], atol=1e-4, rtol=1e-4)
+    fa, fb = eager.extract(image), ort.extract(image)
+    assert len(fa) == len(fb) == 200
+    # the same peaks (scores equal to ~1e-6, so near-ties may swap places in the ranking)
+    oa = np.lexsort(np.round(fa.keypoints, 1).T)
+    ob = np.lexsort(np.round(fb.keypoints, 1).T)
+    np.testing.assert_allclose(fa.keypoints[oa], fb.keypoints[ob], atol=1e-2)
+    np.testing.assert_allclose(fa.descriptors[oa], fb.descriptors[ob], atol=1e-4)
+    np.testing.assert_array_equal(fa.labels[oa], fb.labels[ob])
+    np.testing.assert_array_equal(fa.mask, fb.mask)
+    with pytest.raises(ModelInputError, match='multiples'):  # the export runs the shape checks
+        ort._ort(torch.zeros(1, 3, 100, 100))
+
+
+def test_onnxruntime_sessions_per_size_and_prepare(monkeypatch: pytest.MonkeyPatch) -> None:
+    from semfeat_ros.model import onnx_backend
+
+    torch.manual_seed(0)
+    ext = _extractor(SemFeatNet(SMALL).eval(), backend='onnxruntime', resize_max=160)
+    exports: list[tuple[int, int]] = []
+    real = onnx_backend.OrtNetwork.export
+
+    def counting(self: onnx_backend.OrtNetwork, height: int, width: int) -> bytes:
+        exports.append((height, width))
+        return real(self, height, width)
+
+    monkeypatch.setattr(onnx_backend.OrtNetwork, 'export', counting)
+    ext.prepare(1920, 1536)  # 160x128 at the network
+    ext.prepare(640, 512)  # same network size: no second export
+    image = np.zeros((512, 640), np.uint8)
+    ext.extract(image)
+    assert exports == [(128, 160)]
+    ext.extract(np.zeros((200, 400), np.uint8))  # another aspect: its own graph, 160x80
+    assert exports == [(128, 160), (80, 160)]
+    ext.extract(np.zeros((1536, 1920, 3), np.uint8))
+    assert len(exports) == 2
+
+
+def test_backend_choice_and_errors(monkeypatch: pytest.MonkeyPatch) -> None:
+    from semfeat_ros.model import extractor as extractor_module
+    from semfeat_ros.model import onnx_backend
+
+    net = SemFeatNet(SMALL).eval()
+    assert _extractor(net).backend == 'onnxruntime'  # installed with requirements.txt
+    assert _extractor(net, bf16=True).backend == 'torch'
+    assert _extractor(net, backend='torch')._ort is None
+    with pytest.raises(ModelConfigError, match='bf16'):
+        _extractor(net, backend='onnxruntime', bf16=True)
+    with pytest.raises(ModelConfigError, match='backend'):
+        _extractor(net, backend='tensorrt')
+    for module in (extractor_module, onnx_backend):
+        monkeypatch.setattr(module, 'onnxruntime_available', lambda: False)
+    assert _extractor(net).backend == 'torch'
+    with pytest.raises(ModelConfigError, match='pip install'):
+        _extractor(net, backend='onnxruntime')

@@ -5,10 +5,11 @@
 
 Measures, on the same frames:
 
-* the pure forward at 640x512 and 320x256 for three variants: plain fp32 (NCHW, BatchNorm),
-  the extractor's default fast path (BN folded, channels_last, fp32) and bf16 autocast;
+* the pure forward at 640x512 and 320x256 for four variants: plain fp32 (NCHW, BatchNorm),
+  torch's fast path (BN folded, channels_last, fp32), bf16 autocast, and the same folded graph
+  on ONNX Runtime (when installed);
 * ``extract()`` end-to-end on a 1920x1536 RGB frame (resize, forward, NMS, top-k, sampling,
-  rescaling) with the configured extractor;
+  rescaling) with the configured extractor (backend ``auto``) and with the torch backend;
 * OpenCV SIFT and ORB ``detectAndCompute`` with 1000 features on the grey 1920x1536 frame.
 
 ``--random-init`` times an untrained network of the same architecture: timings only, never a
@@ -32,6 +33,7 @@ import torch
 from semfeat_ros.labels import load_labels
 from semfeat_ros.model.data import resolve_photo_paths
 from semfeat_ros.model.extractor import FeatureExtractor, load_model_yaml
+from semfeat_ros.model.onnx_backend import OrtNetwork, onnxruntime_available
 from semfeat_ros.model.semfeatnet import SemFeatNet, count_parameters, fuse_batchnorm
 from semfeat_ros.model.weights_io import load_weights
 
@@ -50,8 +52,8 @@ def _median_ms(fn: Any, repeats: int, warmup: int = 3) -> float:
 
 
 def time_forward(model: SemFeatNet, size: tuple[int, int], repeats: int,
-                 warmup: int = 3) -> dict[str, float]:
-    """Median forward time (ms) of ``model`` at ``size`` = (w, h) for the three variants."""
+                 warmup: int = 3, threads: int = 2) -> dict[str, float]:
+    """Median forward time (ms) of ``model`` at ``size`` = (w, h) for each variant."""
     w, h = size
     x = torch.randn(1, 3, h, w)
     out = {}
@@ -66,6 +68,10 @@ def time_forward(model: SemFeatNet, size: tuple[int, int], repeats: int,
             with torch.autocast('cpu', dtype=torch.bfloat16):
                 fast(xc)
         out['bf16_channels_last'] = _median_ms(bf16, repeats, warmup)
+    if onnxruntime_available():
+        ort = OrtNetwork(_fast_copy(model), threads)
+        ort.session(h, w)  # export outside the timing
+        out['onnxruntime'] = _median_ms(lambda: ort(x), repeats, warmup)
     return out
 
 
@@ -110,14 +116,20 @@ def run(weights: str | None, random_init: bool, repeats: int, threads: int,
                            'parameters': count_parameters(model),
                            'torch': torch.__version__, 'opencv': cv2.__version__}
     for size in sizes:
-        res[f'forward_{size[0]}x{size[1]}'] = time_forward(model, size, repeats, warmup)
+        res[f'forward_{size[0]}x{size[1]}'] = time_forward(model, size, repeats, warmup,
+                                                           threads)
     n = []
 
     def ext() -> None:
         n.append(len(extractor.extract(image)))
     tag = f'{image.shape[1]}x{image.shape[0]}'
+    res['extract_backend'] = extractor.backend
     res[f'extract_{tag}'] = _median_ms(ext, repeats, warmup)
     res['extract_keypoints'] = int(statistics.median(n))
+    if extractor.backend != 'torch':
+        eager = FeatureExtractor(model, {**ext_conf, 'backend': 'torch'},
+                                 class_names=extractor.class_names)
+        res[f'extract_{tag}_torch'] = _median_ms(lambda: eager.extract(image), repeats, warmup)
     grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
     sift = cv2.SIFT_create(nfeatures=1000)
     orb = cv2.ORB_create(nfeatures=1000)

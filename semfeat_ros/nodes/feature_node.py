@@ -54,7 +54,12 @@ class FeatureNodeConfig:
                            'CameraInfo', range=(60.0, 240.0))
     weights: str = param('', 'Network weights (.safetensors); empty = shipped weights',
                          read_only=True)
-    num_threads: int = param(2, 'torch intra-op threads', range=(1, 64), read_only=True)
+    num_threads: int = param(2, 'Network intra-op threads (torch or onnxruntime)',
+                             range=(1, 64), read_only=True)
+    backend: str = param('auto', 'Network runtime: onnxruntime (the same weights exported in '
+                         'memory; 1.6-1.8x faster than torch on an AVX2 CPU), torch, or auto '
+                         '(onnxruntime when installed and bf16 is off)',
+                         choices=('auto', 'onnxruntime', 'torch'), read_only=True)
     max_keypoints: int = param(1000, 'Keypoints kept per frame (top-k by score)',
                                range=(16, 8192), read_only=True)
     score_threshold: float = param(0.05, 'Minimum heatmap score of a keypoint',
@@ -76,6 +81,11 @@ class FeatureNodeConfig:
                       'BF16 units: avx512_bf16 / amx_bf16), on, off (default: v2 keypoints '
                       'lose their sub-cell precision in bf16)',
                       choices=('auto', 'on', 'off'), read_only=True)
+    warmup_size: list[int] = param([1920, 1536], 'Image size [width, height] (px) the network '
+                                   'is readied for at start-up, before the inputs are '
+                                   'subscribed (onnxruntime exports one graph per size, ~2 s); '
+                                   'other sizes are readied when their CameraInfo arrives; [] = '
+                                   'none', read_only=True)
     max_image_pixels: int = param(50_000_000, 'Frames with more pixels are rejected',
                                   range=(1, 500_000_000), read_only=True)
     diagnostics_period_s: float = param(1.0, 'Period of /diagnostics (s)', range=(0.1, 60.0),
@@ -90,7 +100,7 @@ def frontend_config(c: FeatureNodeConfig, weights: str | None = None) -> Fronten
         max_keypoints=c.max_keypoints, score_threshold=c.score_threshold,
         nms_radius=c.nms_radius, border=c.border, drop_classes=tuple(c.drop_classes),
         mask_resolution=c.mask_resolution, resize_max=c.resize_max,
-        bf16=cpu_has_bf16() if c.bf16 == 'auto' else c.bf16 == 'on')
+        bf16=cpu_has_bf16() if c.bf16 == 'auto' else c.bf16 == 'on', backend=c.backend)
 
 
 class FeatureNode(Node):
@@ -102,6 +112,11 @@ class FeatureNode(Node):
         self.health = NodeHealth(self)
         self.labels = load_labels()
         self.frontend = SemanticFrontend(frontend_config(c))
+        if len(c.warmup_size) not in (0, 2) or any(v < 16 for v in c.warmup_size):
+            raise ValueError(f'warmup_size must be [] or [width, height] >= 16 px, got '
+                             f'{c.warmup_size}')
+        if c.warmup_size:
+            self.frontend.prepare(*c.warmup_size)
         self._camera: CameraModel | None = None
         self._camera_lock = threading.Lock()
         self._worker: LatestWorker = LatestWorker(self._process, self.health.on_error,
@@ -132,7 +147,19 @@ class FeatureNode(Node):
             self.health.on_reject(f'camera_info: {exc}')
             return
         with self._camera_lock:
+            size = (camera.width, camera.height)
+            new_size = self._camera is None or (self._camera.width, self._camera.height) != size
             self._camera = camera
+        if new_size:  # ready the network for this size off the executor (onnxruntime: ~2 s)
+            threading.Thread(target=self._prepare, args=size, daemon=True,
+                             name='feature-prepare').start()
+
+    def _prepare(self, width: int, height: int) -> None:
+        try:
+            self.frontend.prepare(width, height)
+        except Exception as exc:  # noqa: BLE001 - the first frame reports it again, counted
+            self.get_logger().warning(f'could not prepare the network for {width}x{height} '
+                                      f'px: {exc}')
 
     def _on_image(self, msg: Image | CompressedImage) -> None:
         self.health.on_input()
