@@ -385,3 +385,86 @@ def test_vehicle_camera_translation_on_an_arc() -> None:
     # straight ahead, no rotation: the camera moves as the base, along the base's x axis
     t0 = geo.vehicle_camera_translation(np.eye(3), T_bc, 1.0)
     assert np.allclose(T_bc[:3, :3] @ -t0, [1.0, 0.0, 0.0])
+
+
+class _RecordingMapper:
+    """Stands in for the Mapper: records what the session hands it per frame."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple[int, object, object]] = []
+
+    def update(self, tracks, odometry=None, gnss=None):
+        self.calls.append((tracks.stamp_ns, odometry, gnss))
+        return tracks.stamp_ns
+
+
+def _session():
+    from semfeat_ros.camera import Extrinsic, FisheyeCamera
+    from semfeat_ros.mapping.session import MappingSession
+
+    cam = FisheyeCamera(640, 512, 186.7, 186.7, 320, 256, fov_deg=190)
+    s = MappingSession(cam, Extrinsic((1.0, 0.0, 1.0), (0.0, 0.0, 0.0)).T_base_cam)
+    s.mapper = _RecordingMapper()
+    return s
+
+
+def _frame(stamp_ns: int) -> Tracks:
+    return Tracks(stamp_ns, np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 2)),
+                  np.zeros(0, np.uint8))
+
+
+MS = 1_000_000  # ns
+
+
+def test_session_attaches_gnss_by_stamp_even_when_fixes_arrive_first() -> None:
+    # live, frames reach the mapper 0.1-0.5 s late: fixes stamped after a frame are already in
+    # (the demo bag: fixes at 5 Hz on every other 10 Hz frame)
+    s = _session()
+    for k in range(6):  # fixes at 0, 200, ..., 1000 ms, all before any frame is processed
+        s.add_gnss(k * 200 * MS, (48.0 + 1e-5 * k, 11.0, 500.0), np.eye(3) * 1e-4)
+    for t in (0, 100, 200, 300, 500, 700):  # frames 400 and 600 were dropped upstream
+        s.process(_frame(t * MS))
+    got = {stamp // MS: None if fix is None else fix.stamp_ns // MS
+           for stamp, _, fix in s.mapper.calls}
+    # each frame gets the newest fix at or before it (at most gnss_max_dt_s = 150 ms older),
+    # never a newer one: 300 gets none (200 went to frame 200), 500 takes 400's fix
+    assert got == {0: 0, 100: None, 200: 200, 300: None, 500: 400, 700: 600}
+    s.add_gnss(600 * MS, (48.0, 11.0, 500.0), None)  # a repeated stamp is ignored
+    s.add_gnss(100 * MS, (48.0, 11.0, 500.0), None)  # time went backwards: buffer restarts
+    s.process(_frame(1100 * MS))
+    assert s.mapper.calls[-1][2] is None  # 1000 was dropped with the restart; 100 is too old
+
+
+def test_frame_feeder_waits_for_the_odometry_after_a_frame() -> None:
+    from semfeat_ros.mapping.session import FrameFeeder
+
+    s = _session()
+    feeder = FrameFeeder(s, wait_s=0.5)
+    feeder.push(_frame(0), 'a')  # no odometry seen yet: frames pass at once
+    assert [f.tag for f in feeder.release(0)] == ['a']
+    move = np.eye(4)
+    for t in (0, 20, 40, 60, 80, 100):
+        move[0, 3] = t * 1e-3
+        feeder.add_odometry(t * MS, move.copy())
+    feeder.push(_frame(100 * MS), 'b')
+    feeder.push(_frame(200 * MS), 'c')  # its odometry is late
+    fed = feeder.release(200 * MS)
+    assert [f.tag for f in fed] == ['b'] and len(feeder.pending) == 1
+    for t in (120, 140, 160, 180, 200):
+        move[0, 3] = t * 1e-3
+        feeder.add_odometry(t * MS, move.copy())
+    fed = feeder.release(200 * MS)
+    assert [f.tag for f in fed] == ['c']
+    odom = s.mapper.calls[-1][1]
+    np.testing.assert_allclose(odom.T[0, 3], 0.1)  # 100 -> 200 ms of motion, none missing
+    assert s.odometry_missing == {'ahead': 0, 'gap': 0, 'behind': 0}
+    # odometry stalls: a frame waits at most wait_s of stream time, then goes without it
+    feeder.push(_frame(300 * MS), 'd')
+    assert feeder.release(700 * MS) == []
+    assert [f.tag for f in feeder.release(800 * MS)] == ['d']
+    assert s.odometry_missing['ahead'] == 1 and s.mapper.calls[-1][1] is None
+    feeder.push(_frame(900 * MS), 'e')
+    assert [f.tag for f in feeder.release(None)] == ['e']  # flush (end of bag, save_map)
+    feeder.push(_frame(1000 * MS), 'f')
+    feeder.reset()
+    assert feeder.release(None) == []

@@ -38,9 +38,9 @@ from msg_adapters.errors import MessageError
 from semfeat_ros.camera import load_camera_yaml
 from semfeat_ros.mapping import write_ply, write_tum
 from semfeat_ros.mapping.errors import MappingError
-from semfeat_ros.mapping.session import MappingSession, SessionConfig
+from semfeat_ros.mapping.session import FedFrame, FrameFeeder, MappingSession, SessionConfig
 from semfeat_ros.mapping.types import Tracks
-from semfeat_ros.nodes.diagnostics import NodeHealth, spin_node, wall_time
+from semfeat_ros.nodes.diagnostics import NodeHealth, spin_node
 from semfeat_ros.nodes.params import declare_config, guard_updates, param
 from semfeat_ros.runtime import StampGuard
 
@@ -95,6 +95,9 @@ class MappingNodeConfig:
     odom_sigma_tilt_rad_per_m: float = param(
         0.02, 'Roll/pitch freedom of planar wheel odometry (rad per m): ramps tilt the car',
         range=(1e-5, 1.0), read_only=True)
+    odom_wait_s: float = param(0.5, 'Longest a frame waits for the wheel odometry after its '
+                               'stamp (s of stream time); frames are mapped once it is in',
+                               range=(0.0, 10.0), read_only=True)
     cloud_period_s: float = param(1.0, 'Period of /semantic_cloud (s): the full map, latched',
                                   range=(0.05, 3600.0), read_only=True)
     output_dir: str = param('semfeat_map', '~/save_map writes cloud.ply and trajectory.tum here',
@@ -129,19 +132,23 @@ class MappingNode(Node):
         _, extrinsic = load_camera_yaml(c.camera_config or None)
         self.T_base_cam = extrinsic.T_base_cam
         self.session: MappingSession | None = None
+        self.feeder: FrameFeeder | None = None
+        self._now_ns = 0  # newest stamp seen on the tracks and odometry streams (ns)
         self._camera_key: tuple | None = None
         self._lock = threading.Lock()
         self.stamps = StampGuard()
         self._dirty = False
         self.last_result = None
 
-        self.create_subscription(PointCloud2, c.tracks_topic, self._on_tracks, QoSProfile(
-            depth=10, reliability=ReliabilityPolicy.RELIABLE))
-        self.create_subscription(CameraInfo, c.camera_info_topic, self._on_camera_info, 10)
+        # odometry and GNSS first: the executor serves ready subscriptions in this order, and a
+        # frame waits for the odometry after its stamp (FrameFeeder)
         if c.use_odometry:
-            self.create_subscription(Odometry, c.odom_topic, self._on_odom, 50)
+            self.create_subscription(Odometry, c.odom_topic, self._on_odom, 100)
         if c.use_gnss:
             self.create_subscription(NavSatFix, c.gnss_topic, self._on_gnss, 20)
+        self.create_subscription(CameraInfo, c.camera_info_topic, self._on_camera_info, 10)
+        self.create_subscription(PointCloud2, c.tracks_topic, self._on_tracks, QoSProfile(
+            depth=10, reliability=ReliabilityPolicy.RELIABLE))
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self.pub_cloud = self.create_publisher(PointCloud2, c.cloud_topic, latched)
@@ -168,16 +175,22 @@ class MappingNode(Node):
             self._camera_key = key
             self.session = MappingSession(camera, self.T_base_cam, mapper_conf(self.conf),
                                           session_conf(self.conf))
+            self.feeder = FrameFeeder(self.session, self.conf.odom_wait_s)
             self.stamps.reset()
 
     def _on_odom(self, msg: Odometry) -> None:
         try:
             sample = odometry_to_numpy(msg)
             with self._lock:
-                if self.session is not None:
-                    self.session.add_odometry(sample.stamp_ns, sample.T)
+                if self.feeder is None:
+                    return
+                self.feeder.add_odometry(sample.stamp_ns, sample.T)
+                self._now_ns = max(self._now_ns, sample.stamp_ns)
+                fed = self._release(self._now_ns)
         except (MessageError, MappingError) as exc:
             self.health.on_reject(f'odometry: {exc}')
+            return
+        self._publish_frames(fed)
 
     def _on_gnss(self, msg: NavSatFix) -> None:
         try:
@@ -185,22 +198,21 @@ class MappingNode(Node):
             if not fix.has_fix:
                 return
             with self._lock:
-                if self.session is not None:
-                    self.session.add_gnss(fix.stamp_ns, (fix.latitude, fix.longitude,
-                                                         fix.altitude), fix.covariance)
+                if self.feeder is not None:
+                    self.feeder.add_fix(fix.stamp_ns, (fix.latitude, fix.longitude,
+                                                       fix.altitude), fix.covariance)
         except (MessageError, MappingError) as exc:
             self.health.on_reject(f'gnss: {exc}')
 
     def _on_tracks(self, msg: PointCloud2) -> None:
         self.health.on_input()
-        t0 = wall_time()
         try:
             tr = tracks_from_msg(msg)
         except MessageError as exc:
             self.health.on_reject(f'tracks: {exc}')
             return
         with self._lock:
-            if self.session is None:
+            if self.session is None or self.feeder is None:
                 self.health.on_waiting('no CameraInfo received yet; tracks skipped')
                 return
             order = self.stamps.check(tr.stamp_ns)
@@ -210,30 +222,52 @@ class MappingNode(Node):
             if order == 'backwards':
                 self.get_logger().warning('time went backwards (bag loop?): the map restarts')
                 self.session.reset()
+                self.feeder.reset()
+                self._now_ns = 0
             tracks = Tracks(tr.stamp_ns, tr.track_ids.astype(np.int64),
                             tr.bearings.astype(np.float64), tr.uv.astype(np.float64),
                             tr.labels)
-            try:
-                result = self.session.process(tracks)
-            except MappingError as exc:
-                self.health.on_reject(f'mapper: {exc}')
-                return
-            self.last_result = result
-            self._dirty = self._dirty or result.keyframe
-            stamps, poses = self.session.mapper.trajectory()
-            cal = self.session.mapper.odometry_calibration
+            self.feeder.push(tracks)
+            self._now_ns = max(self._now_ns, tr.stamp_ns)
+            fed = self._release(self._now_ns)
+        self._publish_frames(fed)
+
+    def _release(self, now_ns: int | None) -> list[tuple[FedFrame, tuple, dict]]:
+        """Frames the feeder maps now, with the trajectory and calibration after each (call
+        with the lock held)."""
+        out = []
+        for f in self.feeder.release(now_ns):
+            if f.result is not None:
+                self.last_result = f.result
+                self._dirty = self._dirty or f.result.keyframe
+            out.append((f, self.session.mapper.trajectory() if f.result is not None
+                        and f.result.keyframe else None,
+                        {'calibration': self.session.mapper.odometry_calibration,
+                         'missing': dict(self.session.odometry_missing)}))
+        return out
+
+    def _publish_frames(self, fed: list[tuple[FedFrame, tuple | None, dict]]) -> None:
+        for f, path, extra in fed:
+            if f.result is None:
+                self.health.on_reject(f'mapper: {f.error}')
+                continue
+            self._publish_frame(f, path, extra)
+
+    def _publish_frame(self, f: FedFrame, path: tuple | None, extra: dict) -> None:
+        result, stamp_ns = f.result, f.tracks.stamp_ns
         if result.T_map_base is not None:
             cov = None
             if result.covariance is not None:  # (rot, trans) -> ROS (trans, rot)
                 order = [3, 4, 5, 0, 1, 2]
                 cov = result.covariance[np.ix_(order, order)]
             self.pub_odom.publish(odometry_from_numpy(
-                result.T_map_base, cov, stamp_ns=tr.stamp_ns, frame_id=self.conf.map_frame,
+                result.T_map_base, cov, stamp_ns=stamp_ns, frame_id=self.conf.map_frame,
                 child_frame_id=self.conf.base_frame, msg_cls=Odometry))
-        if result.keyframe and len(stamps):
-            self.pub_path.publish(path_from_numpy(stamps, poses, frame_id=self.conf.map_frame,
-                                                  msg_cls=PathMsg, stamp_ns=tr.stamp_ns))
-        self.health.on_output(tr.stamp_ns, wall_time() - t0)
+        if path is not None and len(path[0]):
+            self.pub_path.publish(path_from_numpy(path[0], path[1], frame_id=self.conf.map_frame,
+                                                  msg_cls=PathMsg, stamp_ns=stamp_ns))
+        self.health.on_output(stamp_ns, result.update_ms * 1e-3)  # the mapper's own time
+        cal, missing = extra['calibration'], extra['missing']
         self.health.extra.update(state=result.state, metric=str(result.metric),
                                  landmarks=str(result.n_landmarks),
                                  update_ms=f'{result.update_ms:.1f}')
@@ -241,7 +275,8 @@ class MappingNode(Node):
             odom_yaw_bias_deg_s=f'{math.degrees(cal["yaw_bias_rad_s"]):.4f}',
             odom_yaw_scale=f'{cal["yaw_scale"]:.4f}',
             odom_distance_scale=f'{cal["distance_scale"]:.4f}',
-            odom_calibration_pairs=str(cal['pairs']))
+            odom_calibration_pairs=str(cal['pairs']),
+            frames_without_odometry=' '.join(f'{k} {v}' for k, v in missing.items()))
 
     # -- outputs ----------------------------------------------------------------------------
     def _publish_cloud(self) -> None:
@@ -264,8 +299,10 @@ class MappingNode(Node):
             if self.session is None:
                 response.success, response.message = False, 'no map yet (no CameraInfo)'
                 return response
+            fed = self._release(None)  # the frames still waiting for their odometry
             cloud = self.session.mapper.cloud()
             stamps, poses = self.session.mapper.trajectory()
+        self._publish_frames(fed)
         try:
             out.mkdir(parents=True, exist_ok=True)
             ply = write_ply(out / 'cloud.ply', cloud)

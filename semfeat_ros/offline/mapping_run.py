@@ -11,10 +11,11 @@ and GNSS of a bag in recording order and feeds them through
 * :class:`~semfeat_ros.mapping.session.MappingSession` (mapping_node's core), with the tracks
   converted as they travel in ``/semfeat/tracks`` (float32 bearings and pixels).
 
-Stream timing: wheel odometry is interpolated at each frame's stamp, so a frame is handed to the
-mapper once an odometry sample at or after its stamp has been read (or ``odom_wait_s`` of bag
-time has passed, or the bag ended). GNSS fixes are handed over in stamp order up to the frame's
-stamp; the session attaches the newest one within ``gnss_max_dt_s``. Frames whose decoding,
+Stream timing (:class:`~semfeat_ros.mapping.session.FrameFeeder`, as in mapping_node): wheel
+odometry is interpolated at each frame's stamp, so a frame is handed to the mapper once an
+odometry sample at or after its stamp has been read (or ``odom_wait_s`` of bag time has passed,
+or the bag ended). The session attaches to each frame the newest GNSS fix stamped at or before
+it, within ``gnss_max_dt_s``. Frames whose decoding,
 matching or mapping input is rejected are counted and skipped, as the nodes reject them.
 """
 from __future__ import annotations
@@ -42,7 +43,7 @@ from msg_adapters.image import image_to_numpy
 from semfeat_ros.camera import CameraModel
 from semfeat_ros.frontend import FrontendConfig, FrontendError
 from semfeat_ros.mapping import Mapper, MapperResult, MappingError, Tracks
-from semfeat_ros.mapping.session import MappingSession, SessionConfig
+from semfeat_ros.mapping.session import FrameFeeder, MappingSession, SessionConfig
 from semfeat_ros.matching.errors import MatchingError
 from semfeat_ros.matching.sequential import SequentialMatcher
 from semfeat_ros.offline.bag import (
@@ -188,46 +189,6 @@ def tracks_for_mapper(stamp_ns: int, columns: dict[str, np.ndarray]) -> Tracks:
                   np.asarray(columns['label'], dtype=np.uint8))
 
 
-class _Feeder:
-    """Hands frames to the session once their odometry is bracketed (see the module doc)."""
-
-    def __init__(self, session: MappingSession, odom: bool, wait_s: float) -> None:
-        self.session = session
-        self.odom = odom
-        self.wait_ns = int(wait_s * 1e9)
-        self.last_odom = -1
-        self.pending: deque[tuple[Tracks, FrameRecord]] = deque()
-        self.fixes: deque[tuple[int, tuple[float, float, float], np.ndarray | None]] = deque()
-        self.rejected = 0
-
-    def add_odometry(self, stamp_ns: int, T: np.ndarray) -> None:
-        self.session.add_odometry(stamp_ns, T)
-        self.last_odom = max(self.last_odom, stamp_ns)
-
-    def add_fix(self, stamp_ns: int, geo: tuple[float, float, float],
-                cov: np.ndarray | None) -> None:
-        self.fixes.append((stamp_ns, geo, cov))
-
-    def push(self, tracks: Tracks, record: FrameRecord) -> None:
-        self.pending.append((tracks, record))
-
-    def release(self, now_ns: int | None) -> None:
-        """Map the pending frames that are ready (all of them when ``now_ns`` is None)."""
-        while self.pending:
-            tracks, record = self.pending[0]
-            if (now_ns is not None and self.odom and self.last_odom < tracks.stamp_ns
-                    and now_ns - tracks.stamp_ns < self.wait_ns):
-                return
-            self.pending.popleft()
-            while self.fixes and self.fixes[0][0] <= tracks.stamp_ns:
-                stamp, geo, cov = self.fixes.popleft()
-                self.session.add_gnss(stamp, geo, cov)
-            try:
-                record.result = self.session.process(tracks)
-            except MappingError:
-                self.rejected += 1
-
-
 def _frame_image(msg: Any, max_pixels: int) -> np.ndarray:
     return np.ascontiguousarray(to_rgb_or_mono(msg, max_pixels=max_pixels))
 
@@ -287,7 +248,7 @@ def run_mapping(source: BagSource, conf: MapConfig, progress: bool = True,
     mapper_conf = {**conf.mapper_conf, 'use_odometry': bool(conf.use_odometry),
                    'use_gnss': bool(conf.use_gnss)}
     session = MappingSession(camera0, conf.T_base_cam, mapper_conf, conf.session_conf)
-    feeder = _Feeder(session, used_odom, conf.odom_wait_s)
+    feeder = FrameFeeder(session, conf.odom_wait_s, expect_odometry=used_odom)
 
     frame_topic = conf.tracks_topic if from_tracks else image_topic
     total = source.message_count(frame_topic)
@@ -343,6 +304,10 @@ def run_mapping(source: BagSource, conf: MapConfig, progress: bool = True,
         feeder.push(tracks_for_mapper(stamp, cols), record)
         if on_tracks is not None:
             on_tracks(stamp, str(msg.header.frame_id), cols)
+
+    def release(now_ns: int | None) -> None:
+        for fed in feeder.release(now_ns):
+            fed.tag.result = fed.result
 
     def drain_waiting(now_ns: int | None) -> None:
         while waiting:
@@ -409,7 +374,7 @@ def run_mapping(source: BagSource, conf: MapConfig, progress: bool = True,
                     continue
             if use_gt_labels:
                 drain_waiting(m.log_ns)
-            feeder.release(m.log_ns)
+            release(m.log_ns)
         if use_gt_labels:
             for stamp, _, msg in list(waiting):
                 if stamp in masks:
@@ -417,7 +382,7 @@ def run_mapping(source: BagSource, conf: MapConfig, progress: bool = True,
                 else:
                     counts['frames_without_labels'] += 1
             waiting.clear()
-        feeder.release(None)
+        release(None)
     finally:
         bar.close()
     counts['mapper_rejected'] = feeder.rejected
