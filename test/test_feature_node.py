@@ -203,3 +203,26 @@ def test_compressed_input_and_corrupt_jpeg(ros_context, untrained_weights: Path)
         assert h.wait(lambda: len(h.features) >= 1)
     finally:
         h.close()
+
+
+@pytest.mark.ros_domain(80)
+def test_network_runtime_and_warmup_parameters(ros_context, untrained_weights: Path) -> None:
+    from semfeat_ros.nodes.feature_node import FeatureNode
+
+    base = [Parameter('weights', value=str(untrained_weights))]
+    node = FeatureNode(parameter_overrides=base)  # defaults: onnxruntime, readied for 1920x1536
+    try:
+        assert node.frontend.extractor.backend == 'onnxruntime'
+        assert (512, 640) in node.frontend.extractor._ort._sessions  # built before any frame
+        assert 'on onnxruntime' in node.frontend.describe()
+    finally:
+        node.destroy_node()
+    node = FeatureNode(parameter_overrides=[*base, Parameter('backend', value='torch'),
+                                            Parameter('warmup_size', value=[0, 0])])
+    try:
+        assert node.frontend.extractor.backend == 'torch'
+    finally:
+        node.destroy_node()
+    for bad in ([640], [640, 8]):
+        with pytest.raises(ValueError, match='warmup_size'):
+            FeatureNode(parameter_overrides=[*base, Parameter('warmup_size', value=bad)])

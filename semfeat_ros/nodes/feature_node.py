@@ -54,8 +54,11 @@ class FeatureNodeConfig:
                            'CameraInfo', range=(60.0, 240.0))
     weights: str = param('', 'Network weights (.safetensors); empty = shipped weights',
                          read_only=True)
-    num_threads: int = param(2, 'Network intra-op threads (torch or onnxruntime)',
-                             range=(1, 64), read_only=True)
+    # 1: on 2 cores shared with matcher_node and mapping_node, one network thread kept more
+    # frames than two (make demo, onnxruntime: 161-176 against 147-161 of 198)
+    num_threads: int = param(1, 'Network intra-op threads (torch or onnxruntime); more only '
+                             'where the other nodes leave cores free', range=(1, 64),
+                             read_only=True)
     backend: str = param('auto', 'Network runtime: onnxruntime (the same weights exported in '
                          'memory; 1.6-1.8x faster than torch on an AVX2 CPU), torch, or auto '
                          '(onnxruntime when installed and bf16 is off)',
@@ -84,8 +87,8 @@ class FeatureNodeConfig:
     warmup_size: list[int] = param([1920, 1536], 'Image size [width, height] (px) the network '
                                    'is readied for at start-up, before the inputs are '
                                    'subscribed (onnxruntime exports one graph per size, ~2 s); '
-                                   'other sizes are readied when their CameraInfo arrives; [] = '
-                                   'none', read_only=True)
+                                   'other sizes are readied when their CameraInfo arrives; '
+                                   '[0, 0] = none', read_only=True)
     max_image_pixels: int = param(50_000_000, 'Frames with more pixels are rejected',
                                   range=(1, 500_000_000), read_only=True)
     diagnostics_period_s: float = param(1.0, 'Period of /diagnostics (s)', range=(0.1, 60.0),
@@ -112,11 +115,12 @@ class FeatureNode(Node):
         self.health = NodeHealth(self)
         self.labels = load_labels()
         self.frontend = SemanticFrontend(frontend_config(c))
-        if len(c.warmup_size) not in (0, 2) or any(v < 16 for v in c.warmup_size):
-            raise ValueError(f'warmup_size must be [] or [width, height] >= 16 px, got '
-                             f'{c.warmup_size}')
-        if c.warmup_size:
-            self.frontend.prepare(*c.warmup_size)
+        warmup = [int(v) for v in c.warmup_size]
+        if any(warmup) and (len(warmup) != 2 or min(warmup) < 16):
+            raise ValueError(f'warmup_size must be [width, height] >= 16 px or [0, 0] (none), '
+                             f'got {warmup}')
+        if any(warmup):
+            self.frontend.prepare(*warmup)
         self._camera: CameraModel | None = None
         self._camera_lock = threading.Lock()
         self._worker: LatestWorker = LatestWorker(self._process, self.health.on_error,
