@@ -59,7 +59,7 @@ def test_proc_sampler_reads_this_process() -> None:
 
 def test_forward_variants_tiny(untrained_weights: Path) -> None:
     res = bench.measure_forward(str(untrained_weights), (64, 64), repeats=1, warmup=0)
-    assert set(res) == {'fp32', 'fp32_fused_channels_last', 'bf16_channels_last'}
+    assert set(res) == {'fp32', 'fp32_fused_channels_last', 'bf16_channels_last', 'onnxruntime'}
     assert all(v > 0.0 for v in res.values())
 
 

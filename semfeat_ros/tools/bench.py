@@ -843,15 +843,16 @@ def measure_isam2(keyframes: int, mapper_conf: dict[str, Any], progress: bool
 
 # ----------------------------------------------------------------------------- network only
 
-def measure_forward(weights: str | None, size: tuple[int, int], repeats: int, warmup: int
-                    ) -> dict[str, float]:
-    """Median forward time (ms) of the plain, fused channels-last and bf16 variants at
-    ``size`` (network input px), by :func:`semfeat_ros.model.benchmark.time_forward`."""
+def measure_forward(weights: str | None, size: tuple[int, int], repeats: int, warmup: int,
+                    threads: int = 2) -> dict[str, float]:
+    """Median forward time (ms) of the plain, fused channels-last, bf16 and onnxruntime
+    variants at ``size`` (network input px), by
+    :func:`semfeat_ros.model.benchmark.time_forward`."""
     from semfeat_ros.model.benchmark import time_forward
     from semfeat_ros.model.weights_io import load_weights
 
     model, _ = load_weights(weights)
-    return time_forward(model, size, repeats, warmup)
+    return time_forward(model, size, repeats, warmup, threads)
 
 
 # ---------------------------------------------------------------------------------- figures
@@ -1094,10 +1095,10 @@ def render_document(results: dict[str, Any], img_rel: str) -> str:
               '(`semfeat_ros.model.benchmark.time_forward`, median ms)', '',
               f'The pure forward on a random input tensor, {fw["repeats"]} timed runs each '
               '(no resize, no post-processing).', '',
-              '| fp32 (BatchNorm, NCHW) | fp32 fused, channels-last (shipped default) | '
-              'bf16 autocast |', '|---:|---:|---:|',
+              '| fp32 (BatchNorm, NCHW) | fp32 fused, channels-last (torch backend) | '
+              'bf16 autocast | onnxruntime (shipped default) |', '|---:|---:|---:|---:|',
               f'| {_f(fw["fp32"])} | {_f(fw["fp32_fused_channels_last"])} | '
-              f'{_f(fw["bf16_channels_last"])} |', '']
+              f'{_f(fw["bf16_channels_last"])} | {_f(fw.get("onnxruntime"))} |', '']
     e2e = results.get('end_to_end')
     L += ['## End-to-end sustained rate', '']
     if e2e:
@@ -1253,7 +1254,7 @@ def main(conf: BenchConfig, paths: BenchPaths) -> dict[str, Any]:
         if conf.forward_repeats > 0:
             with load.section('network forward variants'):
                 fw = measure_forward(mc.frontend_conf.weights, net_size, conf.forward_repeats,
-                                     conf.warmup)
+                                     conf.warmup, mc.frontend_conf.num_threads)
             results['forward'] = {**fw, 'size': list(net_size),
                                   'repeats': conf.forward_repeats}
         del frontend
