@@ -6,9 +6,17 @@ bearing factors) together with the optional ``/vehicle/odom`` and ``/gnss/fix``;
 labeled map ``/semantic_cloud`` (latched, transient_local depth 1) at a bounded rate. The service
 ``~/save_map`` (std_srvs/Trigger) writes ``cloud.ply`` (x y z rgb label floor landmark_id n_obs)
 and ``trajectory.tum`` into ``output_dir``.
+
+Threads: the subscription callbacks only parse and queue their inputs; one worker thread applies
+them in arrival order to a :class:`~semfeat_ros.mapping.session.FrameFeeder` (a frame waits for
+the odometry after its stamp) and runs the mapper. The executor, which takes one message per
+subscription each time it wakes, never waits for the mapper, so the 50 Hz odometry is taken as
+it arrives. When the mapper cannot keep up, at most ``max_backlog`` frames wait; older ones are
+dropped and counted (``frames_dropped``), never queued without bound.
 """
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 import math
 from pathlib import Path
@@ -98,6 +106,8 @@ class MappingNodeConfig:
     odom_wait_s: float = param(0.5, 'Longest a frame waits for the wheel odometry after its '
                                'stamp (s of stream time); frames are mapped once it is in',
                                range=(0.0, 10.0), read_only=True)
+    max_backlog: int = param(50, 'Frames that may wait for the mapper; beyond that the '
+                             'oldest are dropped and counted', range=(1, 10000), read_only=True)
     cloud_period_s: float = param(1.0, 'Period of /semantic_cloud (s): the full map, latched',
                                   range=(0.05, 3600.0), read_only=True)
     output_dir: str = param('semfeat_map', '~/save_map writes cloud.ply and trajectory.tum here',
@@ -139,6 +149,10 @@ class MappingNode(Node):
         self.stamps = StampGuard()
         self._dirty = False
         self.last_result = None
+        self._inbox: deque[tuple[str, Any]] = deque()  # parsed inputs, arrival order
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._worker = threading.Thread(target=self._work, daemon=True, name='mapping-worker')
 
         # odometry and GNSS first: the executor serves ready subscriptions in this order, and a
         # frame waits for the odometry after its stamp (FrameFeeder)
@@ -157,6 +171,7 @@ class MappingNode(Node):
         self.create_service(Trigger, '~/save_map', self._on_save_map)
         self.create_timer(c.cloud_period_s, self._publish_cloud)
         self.create_timer(c.diagnostics_period_s, self._publish_diagnostics)
+        self._worker.start()
         self.get_logger().info(f'mapping_node ready: {c.tracks_topic} -> {c.cloud_topic}')
 
     # -- inputs -----------------------------------------------------------------------------
@@ -181,28 +196,19 @@ class MappingNode(Node):
     def _on_odom(self, msg: Odometry) -> None:
         try:
             sample = odometry_to_numpy(msg)
-            with self._lock:
-                if self.feeder is None:
-                    return
-                self.feeder.add_odometry(sample.stamp_ns, sample.T)
-                self._now_ns = max(self._now_ns, sample.stamp_ns)
-                fed = self._release(self._now_ns)
-        except (MessageError, MappingError) as exc:
+        except MessageError as exc:
             self.health.on_reject(f'odometry: {exc}')
             return
-        self._publish_frames(fed)
+        self._queue('odom', sample)
 
     def _on_gnss(self, msg: NavSatFix) -> None:
         try:
             fix = navsatfix_to_numpy(msg)
-            if not fix.has_fix:
-                return
-            with self._lock:
-                if self.feeder is not None:
-                    self.feeder.add_fix(fix.stamp_ns, (fix.latitude, fix.longitude,
-                                                       fix.altitude), fix.covariance)
-        except (MessageError, MappingError) as exc:
+        except MessageError as exc:
             self.health.on_reject(f'gnss: {exc}')
+            return
+        if fix.has_fix:
+            self._queue('gnss', fix)
 
     def _on_tracks(self, msg: PointCloud2) -> None:
         self.health.on_input()
@@ -211,26 +217,66 @@ class MappingNode(Node):
         except MessageError as exc:
             self.health.on_reject(f'tracks: {exc}')
             return
-        with self._lock:
-            if self.session is None or self.feeder is None:
+        self._queue('tracks', tr)
+
+    def _queue(self, kind: str, item: Any) -> None:
+        self._inbox.append((kind, item))
+        self._wake.set()
+
+    # -- the worker ---------------------------------------------------------------------------
+    def _work(self) -> None:
+        while not self._stop.is_set():
+            if not self._wake.wait(0.1):
+                continue
+            self._wake.clear()
+            try:
+                with self._lock:
+                    while self._inbox:
+                        self._apply(*self._inbox.popleft())
+                    self._limit_backlog()
+                    fed = self._release(self._now_ns) if self.feeder is not None else []
+                self._publish_frames(fed)
+            except Exception as exc:  # noqa: BLE001 - a bug must not stop the map: counted
+                self.health.on_error(exc)
+
+    def _apply(self, kind: str, item: Any) -> None:
+        """One queued input into the feeder (call with the lock held)."""
+        if self.feeder is None:
+            if kind == 'tracks':
                 self.health.on_waiting('no CameraInfo received yet; tracks skipped')
-                return
-            order = self.stamps.check(tr.stamp_ns)
-            if order == 'duplicate':
-                self.health.on_reject(f'tracks with a repeated stamp {tr.stamp_ns} ns skipped')
-                return
-            if order == 'backwards':
-                self.get_logger().warning('time went backwards (bag loop?): the map restarts')
-                self.session.reset()
-                self.feeder.reset()
-                self._now_ns = 0
-            tracks = Tracks(tr.stamp_ns, tr.track_ids.astype(np.int64),
-                            tr.bearings.astype(np.float64), tr.uv.astype(np.float64),
-                            tr.labels)
-            self.feeder.push(tracks)
-            self._now_ns = max(self._now_ns, tr.stamp_ns)
-            fed = self._release(self._now_ns)
-        self._publish_frames(fed)
+            return
+        try:
+            if kind == 'odom':
+                self.feeder.add_odometry(item.stamp_ns, item.T)
+                self._now_ns = max(self._now_ns, item.stamp_ns)
+            elif kind == 'gnss':
+                self.feeder.add_fix(item.stamp_ns, (item.latitude, item.longitude,
+                                                    item.altitude), item.covariance)
+            else:
+                self._push_tracks(item)
+        except MappingError as exc:
+            self.health.on_reject(f'{kind}: {exc}')
+
+    def _push_tracks(self, tr: Any) -> None:
+        order = self.stamps.check(tr.stamp_ns)
+        if order == 'duplicate':
+            self.health.on_reject(f'tracks with a repeated stamp {tr.stamp_ns} ns skipped')
+            return
+        if order == 'backwards':
+            self.get_logger().warning('time went backwards (bag loop?): the map restarts')
+            self.session.reset()
+            self.feeder.reset()
+            self._now_ns = 0
+        self.feeder.push(Tracks(tr.stamp_ns, tr.track_ids.astype(np.int64),
+                                tr.bearings.astype(np.float64), tr.uv.astype(np.float64),
+                                tr.labels))
+        self._now_ns = max(self._now_ns, tr.stamp_ns)
+
+    def _limit_backlog(self) -> None:
+        pending = self.feeder.pending if self.feeder is not None else ()
+        while len(pending) > self.conf.max_backlog:
+            pending.popleft()
+            self.health.counters.dropped += 1
 
     def _release(self, now_ns: int | None) -> list[tuple[FedFrame, tuple, dict]]:
         """Frames the feeder maps now, with the trajectory and calibration after each (call
@@ -316,6 +362,13 @@ class MappingNode(Node):
 
     def _publish_diagnostics(self) -> None:
         self.health.publish()
+
+    def destroy_node(self) -> None:
+        self._stop.set()
+        self._wake.set()
+        if self._worker.is_alive():
+            self._worker.join(timeout=10.0)
+        super().destroy_node()
 
 
 def main(args: list[str] | None = None) -> None:
