@@ -117,14 +117,14 @@ def test_default_model_size_and_bn_fusion() -> None:
     torch.manual_seed(0)
     net = SemFeatNet()
     n = count_parameters(net)
-    assert 200_000 < n < 1_000_000  # a few MB of fp32 weights
+    assert 200_000 < n < 2_000_000  # a few MB of fp32 weights
     for m in net.modules():  # non-trivial BN statistics, so folding is really exercised
         if isinstance(m, torch.nn.BatchNorm2d):
             m.running_mean.uniform_(-0.5, 0.5)
             m.running_var.uniform_(0.5, 2.0)
             m.weight.data.uniform_(0.5, 1.5)
     net.eval()
-    x = torch.randn(1, 3, 64, 80)
+    x = torch.randn(1, 3, 64, 96)
     with torch.inference_mode():
         ref = net(x)
         fused = fuse_batchnorm(net)
@@ -144,8 +144,8 @@ def test_config_and_input_validation() -> None:
     with pytest.raises(ModelConfigError, match='descriptor_dim'):
         SemFeatNet({'descriptor_dim': 0})
     net = SemFeatNet().eval()
-    with pytest.raises(ModelInputError, match='multiples of 16'):
-        net(torch.randn(1, 3, 40, 48))
+    with pytest.raises(ModelInputError, match='multiples of 32'):
+        net(torch.randn(1, 3, 48, 64))
     with pytest.raises(ModelInputError, match=r'\(B, 3, H, W\)'):
         net(torch.randn(1, 1, 32, 32))
 

@@ -185,7 +185,7 @@ class SemFeatNet(nn.Module):
 
     default_conf: dict[str, Any] = {
         'in_channels': 3,  # RGB input (grey images are replicated to 3 channels by the wrappers)
-        'encoder_channels': [16, 32, 64, 96],  # width of encoder block n (stride 2**n); N >= 3
+        'encoder_channels': [16, 32, 64, 128, 192],  # block n at stride 2**n; N >= 3 blocks
         'decoder_channels': 64,  # width of Decoder 1 / CTMM / Decoder 2 at stride 8
         'task_dim': 32,  # d_task, length of each learned task embedding z_kp, z_desc, z_seg
         'mixer_dim': 32,  # d, query/key/value width of the CTMM
