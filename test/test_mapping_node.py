@@ -136,3 +136,78 @@ def test_mapping_node_on_synthetic_garage(isolated_ros, tmp_path: Path) -> None:
         node.destroy_node()
         probe.destroy_node()
         rclpy.try_shutdown()
+
+
+@pytest.mark.ros_domain(81)
+def test_frames_wait_for_odometry_that_arrives_after_them(isolated_ros) -> None:
+    # live, tracks can reach mapping_node before the wheel odometry around their stamp: every
+    # frame must still be mapped with its own motion (without it the keyframe chain breaks)
+    from semfeat_ros.nodes.mapping_node import MappingNode
+
+    _, ext = load_camera_yaml()
+    frames = list(garage_drive(CAM, ext.T_base_cam, DriveConfig(seed=3)).frames())[:60]
+    rclpy.init()
+    node = MappingNode(parameter_overrides=[Parameter('use_gnss', value=False)])
+    probe = Node('probe_odom_late')
+    pub_tracks = probe.create_publisher(PointCloud2, '/semfeat/tracks', QoSProfile(
+        depth=500, reliability=ReliabilityPolicy.RELIABLE))
+    pub_info = probe.create_publisher(CameraInfo, '/camera/front/camera_info', 10)
+    pub_odom = probe.create_publisher(Odometry, '/vehicle/odom', 500)
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    executor.add_node(probe)
+    thread = threading.Thread(target=executor.spin, daemon=True)
+    thread.start()
+
+    def wait(cond, timeout: float = 60.0) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline and not cond():
+            time.sleep(0.01)
+        return cond()
+
+    def odom(i: int) -> Odometry:
+        f = frames[i]
+        return odometry_from_numpy(planar(f.T_map_base), np.eye(6) * 1e-4,
+                                   stamp_ns=f.tracks.stamp_ns, frame_id='odom',
+                                   child_frame_id='base_link', msg_cls=Odometry)
+
+    try:
+        assert wait(lambda: pub_tracks.get_subscription_count() > 0
+                    and pub_info.get_subscription_count() > 0
+                    and pub_odom.get_subscription_count() > 0)
+        pub_info.publish(model_to_camera_info(CAM, stamp_ns=0, frame_id='camera_front_optical',
+                                              msg_cls=CameraInfo))
+        assert wait(lambda: node.feeder is not None)
+        pub_odom.publish(odom(0))
+        assert wait(lambda: node.feeder.last_odom >= 0)
+        lag = 2  # frames
+        for i, f in enumerate(frames):
+            tr = f.tracks
+            pub_tracks.publish(tracks_to_msg(
+                tr.pixel, tr.bearing, tr.label, tr.track_id, np.full(len(tr), 2),
+                np.ones(len(tr)), stamp_ns=tr.stamp_ns, frame_id='camera_front_optical',
+                msg_cls=PointCloud2))
+            time.sleep(0.02)
+            if i >= lag:
+                pub_odom.publish(odom(i - lag + 1))
+            if i == 3 * lag:  # frames 0 .. i - lag + 1 have their odometry; the rest wait
+                time.sleep(0.3)
+                assert node.health.counters.received == i + 1
+                assert node.health.counters.processed == i - lag + 2
+        for i in range(len(frames) - lag + 1, len(frames)):
+            pub_odom.publish(odom(i))
+        assert wait(lambda: node.health.counters.processed >= len(frames), 60)
+        with node._lock:
+            missing = dict(node.session.odometry_missing)
+            stamps, poses = node.session.mapper.trajectory()
+        assert missing == {'ahead': 0, 'gap': 0, 'behind': 0}
+        assert node.health.counters.rejected == 0 and node.health.counters.dropped == 0
+        gt = {f.tracks.stamp_ns: f.T_map_base for f in frames}
+        E = poses[:, :3, 3]
+        G = np.array([gt[int(s)][:3, 3] for s in stamps])
+        assert abs(align_umeyama(E, G, with_scale=True).s - 1.0) < 0.05  # metric: odometry used
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        probe.destroy_node()
+        rclpy.try_shutdown()

@@ -278,7 +278,7 @@ class MappingNode(Node):
             pending.popleft()
             self.health.counters.dropped += 1
 
-    def _release(self, now_ns: int | None) -> list[tuple[FedFrame, tuple, dict]]:
+    def _release(self, now_ns: int | None) -> list[tuple[FedFrame, tuple | None, dict]]:
         """Frames the feeder maps now, with the trajectory and calibration after each (call
         with the lock held)."""
         out = []
