@@ -211,3 +211,68 @@ def test_frames_wait_for_odometry_that_arrives_after_them(isolated_ros) -> None:
         node.destroy_node()
         probe.destroy_node()
         rclpy.try_shutdown()
+
+
+@pytest.mark.ros_domain(84)
+def test_backlog_is_bounded_when_the_odometry_stalls(isolated_ros, tmp_path: Path) -> None:
+    from semfeat_ros.nodes.mapping_node import MappingNode
+
+    _, ext = load_camera_yaml()
+    frames = list(garage_drive(CAM, ext.T_base_cam, DriveConfig(seed=3)).frames())[:12]
+    rclpy.init()
+    node = MappingNode(parameter_overrides=[
+        Parameter('use_gnss', value=False), Parameter('odom_wait_s', value=10.0),
+        Parameter('max_backlog', value=3), Parameter('output_dir', value=str(tmp_path))])
+    probe = Node('probe_backlog')
+    pub_tracks = probe.create_publisher(PointCloud2, '/semfeat/tracks', QoSProfile(
+        depth=100, reliability=ReliabilityPolicy.RELIABLE))
+    pub_info = probe.create_publisher(CameraInfo, '/camera/front/camera_info', 10)
+    pub_odom = probe.create_publisher(Odometry, '/vehicle/odom', 100)
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    executor.add_node(probe)
+    thread = threading.Thread(target=executor.spin, daemon=True)
+    thread.start()
+
+    def wait(cond, timeout: float = 30.0) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline and not cond():
+            time.sleep(0.01)
+        return cond()
+
+    try:
+        assert wait(lambda: pub_tracks.get_subscription_count() > 0
+                    and pub_info.get_subscription_count() > 0
+                    and pub_odom.get_subscription_count() > 0)
+        pub_info.publish(model_to_camera_info(CAM, stamp_ns=0, frame_id='camera_front_optical',
+                                              msg_cls=CameraInfo))
+        assert wait(lambda: node.feeder is not None)
+        f0 = frames[0]
+        pub_odom.publish(odometry_from_numpy(planar(f0.T_map_base), None,
+                                             stamp_ns=f0.tracks.stamp_ns, frame_id='odom',
+                                             child_frame_id='base_link', msg_cls=Odometry))
+        assert wait(lambda: node.feeder.last_odom >= 0)
+        for f in frames:  # the odometry stalls after the first frame: every later frame waits
+            tr = f.tracks
+            pub_tracks.publish(tracks_to_msg(
+                tr.pixel, tr.bearing, tr.label, tr.track_id, np.full(len(tr), 2),
+                np.ones(len(tr)), stamp_ns=tr.stamp_ns, frame_id='camera_front_optical',
+                msg_cls=PointCloud2))
+        assert wait(lambda: node.health.counters.received == len(frames))
+        assert wait(lambda: node.health.counters.processed + node.health.counters.dropped
+                    + len(node.feeder.pending) == len(frames))
+        assert node.health.counters.processed == 1  # frame 0: its odometry was in
+        assert len(node.feeder.pending) == 3  # the newest max_backlog frames wait
+        assert node.health.counters.dropped == len(frames) - 4
+        assert [t.stamp_ns for t, _ in node.feeder.pending] == \
+            [f.tracks.stamp_ns for f in frames[-3:]]
+        client = probe.create_client(Trigger, '/mapping_node/save_map')
+        assert client.wait_for_service(timeout_sec=10)
+        future = client.call_async(Trigger.Request())  # maps the waiting frames first
+        assert wait(future.done, 30) and future.result().success
+        assert len(node.feeder.pending) == 0 and node.health.counters.processed == 4
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        probe.destroy_node()
+        rclpy.try_shutdown()
