@@ -133,6 +133,7 @@ def test_mapping_node_on_synthetic_garage(isolated_ros, tmp_path: Path) -> None:
         assert len((tmp_path / 'map' / 'trajectory.tum').read_text().splitlines()) > 10
     finally:
         executor.shutdown()
+        thread.join(timeout=10.0)  # the spin thread must be out before the node is destroyed
         node.destroy_node()
         probe.destroy_node()
         rclpy.try_shutdown()
@@ -180,6 +181,9 @@ def test_frames_wait_for_odometry_that_arrives_after_them(isolated_ros) -> None:
         assert wait(lambda: node.feeder is not None)
         pub_odom.publish(odom(0))
         assert wait(lambda: node.feeder.last_odom >= 0)
+        # both ends of the tracks topic matched: a burst right after discovery can lose its head
+        assert wait(lambda: node.count_publishers('/semfeat/tracks') > 0)
+        time.sleep(0.5)
         lag = 2  # frames
         for i, f in enumerate(frames):
             tr = f.tracks
@@ -208,6 +212,7 @@ def test_frames_wait_for_odometry_that_arrives_after_them(isolated_ros) -> None:
         assert abs(align_umeyama(E, G, with_scale=True).s - 1.0) < 0.05  # metric: odometry used
     finally:
         executor.shutdown()
+        thread.join(timeout=10.0)  # the spin thread must be out before the node is destroyed
         node.destroy_node()
         probe.destroy_node()
         rclpy.try_shutdown()
@@ -252,12 +257,17 @@ def test_backlog_is_bounded_when_the_odometry_stalls(isolated_ros, tmp_path: Pat
                                              stamp_ns=f0.tracks.stamp_ns, frame_id='odom',
                                              child_frame_id='base_link', msg_cls=Odometry))
         assert wait(lambda: node.feeder.last_odom >= 0)
+        # both ends of the tracks topic matched: a burst right after discovery can lose its head
+        assert wait(lambda: node.count_publishers('/semfeat/tracks') > 0)
+        time.sleep(0.5)
         for f in frames:  # the odometry stalls after the first frame: every later frame waits
             tr = f.tracks
             pub_tracks.publish(tracks_to_msg(
                 tr.pixel, tr.bearing, tr.label, tr.track_id, np.full(len(tr), 2),
                 np.ones(len(tr)), stamp_ns=tr.stamp_ns, frame_id='camera_front_optical',
                 msg_cls=PointCloud2))
+            time.sleep(0.02)  # a 50 Hz stream: a burst beyond the subscription's depth (10)
+            #                   could be overwritten before the executor takes it
         assert wait(lambda: node.health.counters.received == len(frames))
         assert wait(lambda: node.health.counters.processed + node.health.counters.dropped
                     + len(node.feeder.pending) == len(frames))
@@ -273,6 +283,7 @@ def test_backlog_is_bounded_when_the_odometry_stalls(isolated_ros, tmp_path: Pat
         assert len(node.feeder.pending) == 0 and node.health.counters.processed == 4
     finally:
         executor.shutdown()
+        thread.join(timeout=10.0)  # the spin thread must be out before the node is destroyed
         node.destroy_node()
         probe.destroy_node()
         rclpy.try_shutdown()

@@ -233,8 +233,8 @@ class MappingNode(Node):
                 with self._lock:
                     while self._inbox:
                         self._apply(*self._inbox.popleft())
-                    self._limit_backlog()
                     fed = self._release(self._now_ns) if self.feeder is not None else []
+                    self._limit_backlog()  # of the frames still waiting for their odometry
                 self._publish_frames(fed)
             except Exception as exc:  # noqa: BLE001 - a bug must not stop the map: counted
                 self.health.on_error(exc)
