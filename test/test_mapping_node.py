@@ -42,55 +42,89 @@ def planar(T: np.ndarray) -> np.ndarray:
     return P
 
 
-@pytest.mark.ros_domain(96)
-def test_mapping_node_on_synthetic_garage(isolated_ros, tmp_path: Path) -> None:
-    from semfeat_ros.nodes.mapping_node import MappingNode
+class Harness:
+    """mapping_node and a probe node (tracks, CameraInfo and odometry publishers) on one
+    executor spinning in a thread; ``rclpy`` is initialised here and shut down by close()."""
 
-    _, ext = load_camera_yaml()
-    drive = garage_drive(CAM, ext.T_base_cam, DriveConfig(seed=3))
-    rclpy.init()
-    node = MappingNode(parameter_overrides=[
-        Parameter('output_dir', value=str(tmp_path / 'map')),
-        Parameter('cloud_period_s', value=0.2), Parameter('use_gnss', value=False)])
-    probe = Node('probe_mapping')
-    poses: list[Odometry] = []
-    probe.create_subscription(Odometry, '/semfeat/odometry', poses.append, 500)
-    pub_tracks = probe.create_publisher(PointCloud2, '/semfeat/tracks', QoSProfile(
-        depth=500, reliability=ReliabilityPolicy.RELIABLE))
-    pub_info = probe.create_publisher(CameraInfo, '/camera/front/camera_info', 10)
-    pub_odom = probe.create_publisher(Odometry, '/vehicle/odom', 500)
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    executor.add_node(probe)
-    thread = threading.Thread(target=executor.spin, daemon=True)
-    thread.start()
+    def __init__(self, overrides: list[Parameter], name: str) -> None:
+        from semfeat_ros.nodes.mapping_node import MappingNode
 
+        rclpy.init()
+        self.node = MappingNode(parameter_overrides=overrides)
+        self.probe = Node(name)
+        self.pub_tracks = self.probe.create_publisher(PointCloud2, '/semfeat/tracks', QoSProfile(
+            depth=500, reliability=ReliabilityPolicy.RELIABLE))
+        self.pub_info = self.probe.create_publisher(CameraInfo, '/camera/front/camera_info', 10)
+        self.pub_odom = self.probe.create_publisher(Odometry, '/vehicle/odom', 500)
+        self.executor = SingleThreadedExecutor()
+        self.executor.add_node(self.node)
+        self.executor.add_node(self.probe)
+        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.thread.start()
+
+    @staticmethod
     def wait(cond, timeout: float = 60.0) -> bool:
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline and not cond():
             time.sleep(0.01)
         return cond()
 
+    def start(self) -> None:
+        """Wait for discovery and send the CameraInfo (the node then has a session)."""
+        assert self.wait(lambda: self.pub_tracks.get_subscription_count() > 0
+                         and self.pub_info.get_subscription_count() > 0
+                         and self.pub_odom.get_subscription_count() > 0)
+        self.pub_info.publish(model_to_camera_info(
+            CAM, stamp_ns=0, frame_id='camera_front_optical', msg_cls=CameraInfo))
+        assert self.wait(lambda: self.node.feeder is not None)
+
+    def send_odom(self, frame, cov: np.ndarray | None = None) -> None:
+        self.pub_odom.publish(odometry_from_numpy(
+            planar(frame.T_map_base), cov, stamp_ns=frame.tracks.stamp_ns, frame_id='odom',
+            child_frame_id='base_link', msg_cls=Odometry))
+
+    def send_tracks(self, frame) -> None:
+        tr = frame.tracks
+        self.pub_tracks.publish(tracks_to_msg(
+            tr.pixel, tr.bearing, tr.label, tr.track_id, np.full(len(tr), 2), np.ones(len(tr)),
+            stamp_ns=tr.stamp_ns, frame_id='camera_front_optical', msg_cls=PointCloud2))
+
+    def settle_tracks_topic(self) -> None:
+        """Both ends of the tracks topic matched: a burst right after discovery can lose its
+        head."""
+        assert self.wait(lambda: self.node.count_publishers('/semfeat/tracks') > 0)
+        time.sleep(0.5)
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.thread.join(timeout=10.0)  # the spin thread must be out before the node is destroyed
+        self.node.destroy_node()
+        self.probe.destroy_node()
+        rclpy.try_shutdown()
+
+
+def drive_frames(n: int | None = None) -> list:
+    _, ext = load_camera_yaml()
+    frames = list(garage_drive(CAM, ext.T_base_cam, DriveConfig(seed=3)).frames())
+    return frames if n is None else frames[:n]
+
+
+@pytest.mark.ros_domain(96)
+def test_mapping_node_on_synthetic_garage(isolated_ros, tmp_path: Path) -> None:
+    h = Harness([Parameter('output_dir', value=str(tmp_path / 'map')),
+                 Parameter('cloud_period_s', value=0.2), Parameter('use_gnss', value=False)],
+                'probe_mapping')
+    poses: list[Odometry] = []
+    h.probe.create_subscription(Odometry, '/semfeat/odometry', poses.append, 500)
+    node, probe, wait = h.node, h.probe, h.wait
     try:
-        assert wait(lambda: pub_tracks.get_subscription_count() > 0
-                    and pub_info.get_subscription_count() > 0
-                    and pub_odom.get_subscription_count() > 0)
-        pub_info.publish(model_to_camera_info(CAM, stamp_ns=0, frame_id='camera_front_optical',
-                                              msg_cls=CameraInfo))
-        assert wait(lambda: node.session is not None)
+        h.start()
         gt = {}
         n = 0
-        for frame in drive.frames():
-            s = frame.tracks.stamp_ns
-            gt[s] = frame.T_map_base
-            pub_odom.publish(odometry_from_numpy(planar(frame.T_map_base), np.eye(6) * 1e-4,
-                                                 stamp_ns=s, frame_id='odom',
-                                                 child_frame_id='base_link', msg_cls=Odometry))
-            tr = frame.tracks
-            pub_tracks.publish(tracks_to_msg(
-                tr.pixel, tr.bearing, tr.label, tr.track_id, np.full(len(tr), 2),
-                np.ones(len(tr)), stamp_ns=s, frame_id='camera_front_optical',
-                msg_cls=PointCloud2))
+        for frame in drive_frames():
+            gt[frame.tracks.stamp_ns] = frame.T_map_base
+            h.send_odom(frame, np.eye(6) * 1e-4)
+            h.send_tracks(frame)
             n += 1
             assert wait(lambda k=n: node.health.counters.processed >= k, 30)
         assert node.health.counters.rejected == 0
@@ -132,75 +166,34 @@ def test_mapping_node_on_synthetic_garage(isolated_ros, tmp_path: Path) -> None:
         assert (tmp_path / 'map' / 'cloud.ply').stat().st_size > 1000
         assert len((tmp_path / 'map' / 'trajectory.tum').read_text().splitlines()) > 10
     finally:
-        executor.shutdown()
-        thread.join(timeout=10.0)  # the spin thread must be out before the node is destroyed
-        node.destroy_node()
-        probe.destroy_node()
-        rclpy.try_shutdown()
+        h.close()
 
 
 @pytest.mark.ros_domain(81)
 def test_frames_wait_for_odometry_that_arrives_after_them(isolated_ros) -> None:
     # live, tracks can reach mapping_node before the wheel odometry around their stamp: every
     # frame must still be mapped with its own motion (without it the keyframe chain breaks)
-    from semfeat_ros.nodes.mapping_node import MappingNode
-
-    _, ext = load_camera_yaml()
-    frames = list(garage_drive(CAM, ext.T_base_cam, DriveConfig(seed=3)).frames())[:60]
-    rclpy.init()
-    node = MappingNode(parameter_overrides=[Parameter('use_gnss', value=False)])
-    probe = Node('probe_odom_late')
-    pub_tracks = probe.create_publisher(PointCloud2, '/semfeat/tracks', QoSProfile(
-        depth=500, reliability=ReliabilityPolicy.RELIABLE))
-    pub_info = probe.create_publisher(CameraInfo, '/camera/front/camera_info', 10)
-    pub_odom = probe.create_publisher(Odometry, '/vehicle/odom', 500)
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    executor.add_node(probe)
-    thread = threading.Thread(target=executor.spin, daemon=True)
-    thread.start()
-
-    def wait(cond, timeout: float = 60.0) -> bool:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline and not cond():
-            time.sleep(0.01)
-        return cond()
-
-    def odom(i: int) -> Odometry:
-        f = frames[i]
-        return odometry_from_numpy(planar(f.T_map_base), np.eye(6) * 1e-4,
-                                   stamp_ns=f.tracks.stamp_ns, frame_id='odom',
-                                   child_frame_id='base_link', msg_cls=Odometry)
-
+    frames = drive_frames(60)
+    h = Harness([Parameter('use_gnss', value=False)], 'probe_odom_late')
+    node = h.node
     try:
-        assert wait(lambda: pub_tracks.get_subscription_count() > 0
-                    and pub_info.get_subscription_count() > 0
-                    and pub_odom.get_subscription_count() > 0)
-        pub_info.publish(model_to_camera_info(CAM, stamp_ns=0, frame_id='camera_front_optical',
-                                              msg_cls=CameraInfo))
-        assert wait(lambda: node.feeder is not None)
-        pub_odom.publish(odom(0))
-        assert wait(lambda: node.feeder.last_odom >= 0)
-        # both ends of the tracks topic matched: a burst right after discovery can lose its head
-        assert wait(lambda: node.count_publishers('/semfeat/tracks') > 0)
-        time.sleep(0.5)
+        h.start()
+        h.send_odom(frames[0], np.eye(6) * 1e-4)
+        assert h.wait(lambda: node.feeder.last_odom >= 0)
+        h.settle_tracks_topic()
         lag = 2  # frames
         for i, f in enumerate(frames):
-            tr = f.tracks
-            pub_tracks.publish(tracks_to_msg(
-                tr.pixel, tr.bearing, tr.label, tr.track_id, np.full(len(tr), 2),
-                np.ones(len(tr)), stamp_ns=tr.stamp_ns, frame_id='camera_front_optical',
-                msg_cls=PointCloud2))
+            h.send_tracks(f)
             time.sleep(0.02)
             if i >= lag:
-                pub_odom.publish(odom(i - lag + 1))
+                h.send_odom(frames[i - lag + 1], np.eye(6) * 1e-4)
             if i == 3 * lag:  # frames 0 .. i - lag + 1 have their odometry; the rest wait
                 time.sleep(0.3)
                 assert node.health.counters.received == i + 1
                 assert node.health.counters.processed == i - lag + 2
         for i in range(len(frames) - lag + 1, len(frames)):
-            pub_odom.publish(odom(i))
-        assert wait(lambda: node.health.counters.processed >= len(frames), 60)
+            h.send_odom(frames[i], np.eye(6) * 1e-4)
+        assert h.wait(lambda: node.health.counters.processed >= len(frames), 60)
         with node._lock:
             missing = dict(node.session.odometry_missing)
             stamps, poses = node.session.mapper.trajectory()
@@ -211,61 +204,23 @@ def test_frames_wait_for_odometry_that_arrives_after_them(isolated_ros) -> None:
         G = np.array([gt[int(s)][:3, 3] for s in stamps])
         assert abs(align_umeyama(E, G, with_scale=True).s - 1.0) < 0.05  # metric: odometry used
     finally:
-        executor.shutdown()
-        thread.join(timeout=10.0)  # the spin thread must be out before the node is destroyed
-        node.destroy_node()
-        probe.destroy_node()
-        rclpy.try_shutdown()
+        h.close()
 
 
 @pytest.mark.ros_domain(84)
 def test_backlog_is_bounded_when_the_odometry_stalls(isolated_ros, tmp_path: Path) -> None:
-    from semfeat_ros.nodes.mapping_node import MappingNode
-
-    _, ext = load_camera_yaml()
-    frames = list(garage_drive(CAM, ext.T_base_cam, DriveConfig(seed=3)).frames())[:12]
-    rclpy.init()
-    node = MappingNode(parameter_overrides=[
-        Parameter('use_gnss', value=False), Parameter('odom_wait_s', value=10.0),
-        Parameter('max_backlog', value=3), Parameter('output_dir', value=str(tmp_path))])
-    probe = Node('probe_backlog')
-    pub_tracks = probe.create_publisher(PointCloud2, '/semfeat/tracks', QoSProfile(
-        depth=100, reliability=ReliabilityPolicy.RELIABLE))
-    pub_info = probe.create_publisher(CameraInfo, '/camera/front/camera_info', 10)
-    pub_odom = probe.create_publisher(Odometry, '/vehicle/odom', 100)
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    executor.add_node(probe)
-    thread = threading.Thread(target=executor.spin, daemon=True)
-    thread.start()
-
-    def wait(cond, timeout: float = 30.0) -> bool:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline and not cond():
-            time.sleep(0.01)
-        return cond()
-
+    frames = drive_frames(12)
+    h = Harness([Parameter('use_gnss', value=False), Parameter('odom_wait_s', value=10.0),
+                 Parameter('max_backlog', value=3), Parameter('output_dir', value=str(tmp_path))],
+                'probe_backlog')
+    node, wait = h.node, h.wait
     try:
-        assert wait(lambda: pub_tracks.get_subscription_count() > 0
-                    and pub_info.get_subscription_count() > 0
-                    and pub_odom.get_subscription_count() > 0)
-        pub_info.publish(model_to_camera_info(CAM, stamp_ns=0, frame_id='camera_front_optical',
-                                              msg_cls=CameraInfo))
-        assert wait(lambda: node.feeder is not None)
-        f0 = frames[0]
-        pub_odom.publish(odometry_from_numpy(planar(f0.T_map_base), None,
-                                             stamp_ns=f0.tracks.stamp_ns, frame_id='odom',
-                                             child_frame_id='base_link', msg_cls=Odometry))
+        h.start()
+        h.send_odom(frames[0])
         assert wait(lambda: node.feeder.last_odom >= 0)
-        # both ends of the tracks topic matched: a burst right after discovery can lose its head
-        assert wait(lambda: node.count_publishers('/semfeat/tracks') > 0)
-        time.sleep(0.5)
+        h.settle_tracks_topic()
         for f in frames:  # the odometry stalls after the first frame: every later frame waits
-            tr = f.tracks
-            pub_tracks.publish(tracks_to_msg(
-                tr.pixel, tr.bearing, tr.label, tr.track_id, np.full(len(tr), 2),
-                np.ones(len(tr)), stamp_ns=tr.stamp_ns, frame_id='camera_front_optical',
-                msg_cls=PointCloud2))
+            h.send_tracks(f)
             time.sleep(0.02)  # a 50 Hz stream: a burst beyond the subscription's depth (10)
             #                   could be overwritten before the executor takes it
         assert wait(lambda: node.health.counters.received == len(frames))
@@ -276,14 +231,10 @@ def test_backlog_is_bounded_when_the_odometry_stalls(isolated_ros, tmp_path: Pat
         assert node.health.counters.dropped == len(frames) - 4
         assert [t.stamp_ns for t, _ in node.feeder.pending] == \
             [f.tracks.stamp_ns for f in frames[-3:]]
-        client = probe.create_client(Trigger, '/mapping_node/save_map')
+        client = h.probe.create_client(Trigger, '/mapping_node/save_map')
         assert client.wait_for_service(timeout_sec=10)
         future = client.call_async(Trigger.Request())  # maps the waiting frames first
         assert wait(future.done, 30) and future.result().success
         assert len(node.feeder.pending) == 0 and node.health.counters.processed == 4
     finally:
-        executor.shutdown()
-        thread.join(timeout=10.0)  # the spin thread must be out before the node is destroyed
-        node.destroy_node()
-        probe.destroy_node()
-        rclpy.try_shutdown()
+        h.close()
