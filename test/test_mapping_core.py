@@ -465,6 +465,8 @@ def test_frame_feeder_waits_for_the_odometry_after_a_frame() -> None:
     assert s.odometry_missing['ahead'] == 1 and s.mapper.calls[-1][1] is None
     feeder.push(_frame(900 * MS), 'e')
     assert [f.tag for f in feeder.release(None)] == ['e']  # flush (end of bag, save_map)
-    feeder.push(_frame(1000 * MS), 'f')
+    for k in range(4):
+        feeder.push(_frame((1000 + k) * MS), k)
+    assert feeder.trim(2) == 2 and [tag for _, tag in feeder.pending] == [2, 3]  # oldest go
     feeder.reset()
     assert feeder.release(None) == []

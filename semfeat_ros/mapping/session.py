@@ -239,6 +239,14 @@ class FrameFeeder:
         self.pending.clear()
         self.last_odom = -1
 
+    def trim(self, max_pending: int) -> int:
+        """Drop the oldest queued frames beyond ``max_pending``; returns how many."""
+        dropped = 0
+        while len(self.pending) > max_pending:
+            self.pending.popleft()
+            dropped += 1
+        return dropped
+
     def release(self, now_ns: int | None) -> list[FedFrame]:
         """Map the queued frames that are ready (all of them when ``now_ns`` is None)."""
         out = []

@@ -69,7 +69,7 @@ def time_forward(model: SemFeatNet, size: tuple[int, int], repeats: int,
                 fast(xc)
         out['bf16_channels_last'] = _median_ms(bf16, repeats, warmup)
     if onnxruntime_available():
-        ort = OrtNetwork(_fast_copy(model), threads)
+        ort = OrtNetwork(fast, threads)  # the same folded copy, exported
         ort.session(h, w)  # export outside the timing
         out['onnxruntime'] = _median_ms(lambda: ort(x), repeats, warmup)
     return out

@@ -233,9 +233,12 @@ class MappingNode(Node):
                 with self._lock:
                     while self._inbox:
                         self._apply(*self._inbox.popleft())
-                    fed = self._release(self._now_ns) if self.feeder is not None else []
-                    self._limit_backlog()  # of the frames still waiting for their odometry
-                self._publish_frames(fed)
+                    if self.feeder is None:
+                        continue
+                    fed = self._release(self._now_ns)
+                    # of the frames still waiting for their odometry
+                    self.health.counters.dropped += self.feeder.trim(self.conf.max_backlog)
+                self._publish_frames(*fed)
             except Exception as exc:  # noqa: BLE001 - a bug must not stop the map: counted
                 self.health.on_error(exc)
 
@@ -272,34 +275,40 @@ class MappingNode(Node):
                                 tr.labels))
         self._now_ns = max(self._now_ns, tr.stamp_ns)
 
-    def _limit_backlog(self) -> None:
-        pending = self.feeder.pending if self.feeder is not None else ()
-        while len(pending) > self.conf.max_backlog:
-            pending.popleft()
-            self.health.counters.dropped += 1
-
-    def _release(self, now_ns: int | None) -> list[tuple[FedFrame, tuple | None, dict]]:
-        """Frames the feeder maps now, with the trajectory and calibration after each (call
-        with the lock held)."""
+    def _release(self, now_ns: int | None
+                 ) -> tuple[list[tuple[FedFrame, tuple | None]], dict[str, Any]]:
+        """Frames the feeder maps now, each with the keyframe path after it, and the session's
+        state after the last of them (call with the lock held)."""
         out = []
         for f in self.feeder.release(now_ns):
+            path = None
             if f.result is not None:
                 self.last_result = f.result
                 self._dirty = self._dirty or f.result.keyframe
-            out.append((f, self.session.mapper.trajectory() if f.result is not None
-                        and f.result.keyframe else None,
-                        {'calibration': self.session.mapper.odometry_calibration,
-                         'missing': dict(self.session.odometry_missing)}))
-        return out
+                if f.result.keyframe:
+                    path = self.session.mapper.trajectory()
+            out.append((f, path))
+        state = {'calibration': self.session.mapper.odometry_calibration,
+                 'missing': dict(self.session.odometry_missing)} if out else {}
+        return out, state
 
-    def _publish_frames(self, fed: list[tuple[FedFrame, tuple | None, dict]]) -> None:
-        for f, path, extra in fed:
+    def _publish_frames(self, fed: list[tuple[FedFrame, tuple | None]],
+                        state: dict[str, Any]) -> None:
+        for f, path in fed:
             if f.result is None:
                 self.health.on_reject(f'mapper: {f.error}')
-                continue
-            self._publish_frame(f, path, extra)
+            else:
+                self._publish_frame(f, path)
+        if state:
+            cal, missing = state['calibration'], state['missing']
+            self.health.extra.update(
+                odom_yaw_bias_deg_s=f'{math.degrees(cal["yaw_bias_rad_s"]):.4f}',
+                odom_yaw_scale=f'{cal["yaw_scale"]:.4f}',
+                odom_distance_scale=f'{cal["distance_scale"]:.4f}',
+                odom_calibration_pairs=str(cal['pairs']),
+                frames_without_odometry=' '.join(f'{k} {v}' for k, v in missing.items()))
 
-    def _publish_frame(self, f: FedFrame, path: tuple | None, extra: dict) -> None:
+    def _publish_frame(self, f: FedFrame, path: tuple | None) -> None:
         result, stamp_ns = f.result, f.tracks.stamp_ns
         if result.T_map_base is not None:
             cov = None
@@ -313,16 +322,9 @@ class MappingNode(Node):
             self.pub_path.publish(path_from_numpy(path[0], path[1], frame_id=self.conf.map_frame,
                                                   msg_cls=PathMsg, stamp_ns=stamp_ns))
         self.health.on_output(stamp_ns, result.update_ms * 1e-3)  # the mapper's own time
-        cal, missing = extra['calibration'], extra['missing']
         self.health.extra.update(state=result.state, metric=str(result.metric),
                                  landmarks=str(result.n_landmarks),
                                  update_ms=f'{result.update_ms:.1f}')
-        self.health.extra.update(
-            odom_yaw_bias_deg_s=f'{math.degrees(cal["yaw_bias_rad_s"]):.4f}',
-            odom_yaw_scale=f'{cal["yaw_scale"]:.4f}',
-            odom_distance_scale=f'{cal["distance_scale"]:.4f}',
-            odom_calibration_pairs=str(cal['pairs']),
-            frames_without_odometry=' '.join(f'{k} {v}' for k, v in missing.items()))
 
     # -- outputs ----------------------------------------------------------------------------
     def _publish_cloud(self) -> None:
@@ -348,7 +350,7 @@ class MappingNode(Node):
             fed = self._release(None)  # the frames still waiting for their odometry
             cloud = self.session.mapper.cloud()
             stamps, poses = self.session.mapper.trajectory()
-        self._publish_frames(fed)
+        self._publish_frames(*fed)
         try:
             out.mkdir(parents=True, exist_ok=True)
             ply = write_ply(out / 'cloud.ply', cloud)
