@@ -136,6 +136,26 @@ def test_default_model_size_and_bn_fusion() -> None:
         fuse_batchnorm(SemFeatNet().train())
 
 
+def test_seg_layers_deepen_the_stride4_decoder_and_keep_old_keys() -> None:
+    small = {'encoder_channels': [8, 16, 24], 'decoder_channels': 16, 'descriptor_dim': 16,
+             'seg_channels': 8, 'task_dim': 8, 'mixer_dim': 8}
+    one = SemFeatNet(small).state_dict()
+    assert not any(k.startswith('seg_refine') for k in one)  # v0-v3 weights load unchanged
+    torch.manual_seed(0)
+    deep = SemFeatNet({**small, 'seg_layers': 3}).eval()
+    extra = {k for k in deep.state_dict() if k not in one}
+    assert extra and all(k.startswith('seg_refine.') for k in extra)
+    assert len(deep.seg_refine) == 2
+    x = torch.randn(1, 3, 32, 64)
+    with torch.inference_mode():
+        ref = deep(x)['segmentation_logits']
+        assert ref.shape == (1, 19, 8, 16)
+        torch.testing.assert_close(fuse_batchnorm(deep)(x)['segmentation_logits'], ref,
+                                   atol=1e-4, rtol=1e-4)
+    with pytest.raises(ModelConfigError, match='seg_layers'):
+        SemFeatNet({**small, 'seg_layers': 0})
+
+
 def test_config_and_input_validation() -> None:
     with pytest.raises(ModelConfigError, match='encoder_channels'):
         SemFeatNet({'encoder_channels': [8, 16]})

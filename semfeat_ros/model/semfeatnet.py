@@ -197,6 +197,8 @@ class SemFeatNet(nn.Module):
         'kp_head_layers': 2,  # hidden 1x1 conv + BN + ReLU layers of the kp head (v0/v1: 1)
         'descriptor_dim': 64,  # D, length of the L2-normalised descriptors
         'seg_channels': 32,  # width of the segmentation decoder at stride 4
+        'seg_layers': 1,  # separable 3x3 layers of the segmentation decoder at stride 4 (v0-v3:
+        #                   1; the first sees the F2 skip)
         'num_classes': 19,  # C, semantic classes (config/labels.yaml)
     }
 
@@ -213,7 +215,7 @@ class SemFeatNet(nn.Module):
                 f'encoder_channels needs >= 3 positive widths (stride 8 must exist), got {enc}')
         for key in ('decoder_channels', 'task_dim', 'mixer_dim', 'kp_fine_channels',
                     'descriptor_dim', 'seg_channels', 'num_classes', 'in_channels',
-                    'kp_head_layers'):
+                    'kp_head_layers', 'seg_layers'):
             if int(conf[key]) <= 0:
                 raise ModelConfigError(f'{key} must be a positive integer, got {conf[key]!r}')
         if int(conf['kp_pixel_channels']) < 0:
@@ -252,6 +254,9 @@ class SemFeatNet(nn.Module):
         seg_c = int(conf['seg_channels'])
         self.seg_reduce = conv_bn_relu(width, seg_c, kernel=1)
         self.seg_decoder = separable_bn_relu(seg_c + enc[1], seg_c)
+        # further layers (no parameters, and the v0-v3 state-dict keys, with seg_layers 1)
+        self.seg_refine = nn.Sequential(
+            *[separable_bn_relu(seg_c, seg_c) for _ in range(int(conf['seg_layers']) - 1)])
         self.seg_head = nn.Conv2d(seg_c, int(conf['num_classes']), 1)
 
     def forward(self, image: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -301,7 +306,7 @@ class SemFeatNet(nn.Module):
         seg = self.seg_reduce(mixed['seg'])
         skip = feats[1]
         seg = F.interpolate(seg, size=skip.shape[-2:], mode='bilinear', align_corners=False)
-        seg = self.seg_head(self.seg_decoder(torch.cat([seg, skip], dim=1)))
+        seg = self.seg_head(self.seg_refine(self.seg_decoder(torch.cat([seg, skip], dim=1))))
         return {
             'keypoint_logits': logits,
             'heatmap': torch.sigmoid(logits[:, 0]),
