@@ -470,3 +470,8 @@ def test_frame_feeder_waits_for_the_odometry_after_a_frame() -> None:
     assert feeder.trim(2) == 2 and [tag for _, tag in feeder.pending] == [2, 3]  # oldest go
     feeder.reset()
     assert feeder.release(None) == []
+    # the odometry restarts earlier (a bag loops): frames wait for the new stream again
+    feeder.add_odometry(5000 * MS, move.copy())
+    feeder.add_odometry(100 * MS, move.copy())
+    feeder.push(_frame(300 * MS), 'f')
+    assert feeder.release(300 * MS) == [] and len(feeder.pending) == 1

@@ -222,7 +222,9 @@ class FrameFeeder:
     def add_odometry(self, stamp_ns: int, T: np.ndarray) -> None:
         """An odometry pose (see :meth:`MappingSession.add_odometry`)."""
         self.session.add_odometry(stamp_ns, T)
-        self.last_odom = max(self.last_odom, int(stamp_ns))
+        # the newest sample, not the largest stamp: when a bag loops the odometry restarts
+        # earlier, and the new loop's frames must wait for it again
+        self.last_odom = int(stamp_ns)
         self.expect_odometry = True
 
     def add_fix(self, stamp_ns: int, geo: tuple[float, float, float],
