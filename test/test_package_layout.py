@@ -98,13 +98,16 @@ def test_ros2_run_resolution(colcon_install: Path) -> None:
         assert (Path(out[0]) / 'lib' / PKG / node).is_file()
 
 
-def test_installed_node_comes_up(colcon_install: Path) -> None:
+def test_installed_node_comes_up(colcon_install: Path, tmp_path: Path) -> None:
     """Start the installed nodes from the install space: each logs 'ready', joins the graph and
     keeps running."""
     env = sourced_env(colcon_install, 75)
-    procs = {name: subprocess.Popen([str(colcon_install / PKG / 'lib' / PKG / name)], env=env,
-                                    stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-             for name in NODES}
+    files = {name: tmp_path / f'{name}.log' for name in NODES}
+    procs = {}
+    for name in NODES:
+        with files[name].open('w') as log:  # a file, so the test can read it while it runs
+            procs[name] = subprocess.Popen([str(colcon_install / PKG / 'lib' / PKG / name)],
+                                           env=env, stdout=log, stderr=subprocess.STDOUT)
     probe = ('import rclpy, time\nrclpy.init()\nn = rclpy.create_node("probe")\n'
              f't = time.monotonic()\nwant = set({NODES!r})\n'
              'while time.monotonic() - t < 60 and not want <= set(n.get_node_names()):\n'
@@ -113,17 +116,26 @@ def test_installed_node_comes_up(colcon_install: Path) -> None:
     try:
         out = subprocess.run([sys.executable, '-c', probe], env=env, capture_output=True,
                              text=True, timeout=120).stdout
-        time.sleep(3.0)  # a node that fails during start-up would be gone by now
+        # a node joins the graph before it is ready (feature_node readies the network first,
+        # seconds on 2 busy cores): wait for every 'ready' line, or for a node to exit
+        deadline = time.monotonic() + 90.0
+        while time.monotonic() < deadline and not all(
+                f'{name} ready' in files[name].read_text() or procs[name].poll() is not None
+                for name in NODES):
+            time.sleep(0.2)
+        time.sleep(3.0)  # a node that fails right after start-up would be gone by now
         alive = {name: p.poll() is None for name, p in procs.items()}
     finally:
-        logs = {}
-        for name, p in procs.items():
-            p.send_signal(signal.SIGINT)
+        for p in procs.values():
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+        for p in procs.values():
             try:
-                logs[name], _ = p.communicate(timeout=20)
+                p.wait(timeout=20)
             except subprocess.TimeoutExpired:
                 p.kill()
-                logs[name], _ = p.communicate()
+                p.wait()
+    logs = {name: files[name].read_text() for name in NODES}
     for name in NODES:
         assert alive[name], logs[name]
         assert f'{name} ready' in logs[name], logs[name]
