@@ -254,7 +254,7 @@ class SemFeatNet(nn.Module):
         seg_c = int(conf['seg_channels'])
         self.seg_reduce = conv_bn_relu(width, seg_c, kernel=1)
         self.seg_decoder = separable_bn_relu(seg_c + enc[1], seg_c)
-        # further layers (no parameters, and the v0-v3 state-dict keys, with seg_layers 1)
+        # the layers after the first: empty with seg_layers 1, so v0-v3 weights keep their keys
         self.seg_refine = nn.Sequential(
             *[separable_bn_relu(seg_c, seg_c) for _ in range(int(conf['seg_layers']) - 1)])
         self.seg_head = nn.Conv2d(seg_c, int(conf['num_classes']), 1)
