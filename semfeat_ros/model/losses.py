@@ -40,6 +40,8 @@ default_loss_conf: dict[str, Any] = {
     #                            (0: plain CE as in the paper; 0.5: rare classes such as parking
     #                            lines, curbs and pillars count more)
     'seg_max_class_weight': 10.0,  # upper clip of those weights
+    'seg_lovasz_weight': 0.0,  # weight of the Lovasz-softmax term (a surrogate of the per-class
+    #                            IoU, on the same grid) added to L_seg; 0: CE only (the paper)
 }
 
 
@@ -196,23 +198,10 @@ def descriptor_loss(desc_a: torch.Tensor, desc_b: torch.Tensor, points_a: torch.
     return pos_term + neg_term, stats
 
 
-def segmentation_loss(logits: torch.Tensor, labels: torch.Tensor,
-                      class_weights: torch.Tensor | None = None,
-                      stride: int = 1) -> torch.Tensor:
-    """Multi-class cross-entropy (paper eq. 8).
-
-    Args:
-        logits: (B, C, h, w) class logits at stride ``s = H / h`` (integer).
-        labels: (B, H, W) integer class ids, :data:`IGNORE_LABEL` (255) ignored.
-        class_weights: optional (C,) per-class weights.
-        stride: ``s`` (px), the grid the CE is taken on: labels are sampled at the centres of
-            the ``s x s`` cells (pixel ``s*i + s//2``) and logits coarser than that grid are
-            upsampled bilinearly to it. 1: every pixel (the paper); the logit stride (4): no
-            upsampling, ~16x cheaper, but the samples miss a 2 px wide line at half of its
-            possible positions; 2: ~4x cheaper than 1, and every line 2 px wide is sampled.
-    Returns:
-        scalar: mean CE over labelled pixels (0 if every pixel is ignored).
-    """
+def _on_loss_grid(logits: torch.Tensor, labels: torch.Tensor, stride: int
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Logits (B, C, h, w) and labels (B, H, W) on the loss grid of ``stride`` px (see
+    :func:`segmentation_loss`): ``((B, C, H/s, W/s) logits, (B, H/s, W/s) long labels)``."""
     if labels.ndim != 3 or logits.ndim != 4 or labels.shape[0] != logits.shape[0]:
         raise ModelInputError(f'segmentation_loss: logits {tuple(logits.shape)} (B, C, h, w) '
                               f'vs labels {tuple(labels.shape)} (B, H, W)')
@@ -232,6 +221,64 @@ def segmentation_loss(logits: torch.Tensor, labels: torch.Tensor,
     labels = labels.long()
     if stride > 1:
         labels = labels[:, stride // 2::stride, stride // 2::stride]
+    return logits, labels
+
+
+def lovasz_softmax_loss(logits: torch.Tensor, labels: torch.Tensor, stride: int = 1
+                        ) -> torch.Tensor:
+    """Lovasz-softmax loss (Berman et al., CVPR 2018): a convex surrogate of 1 - IoU per class.
+
+    For every class present in the batch the pixel errors ``|[y == c] - p_c|`` are sorted in
+    decreasing order and weighted by the gradient of the Jaccard loss along that order; the
+    loss is the mean over those classes. Unlike the (class-weighted) cross-entropy it penalises
+    false positives of a rare class as much as its misses, which is what the mIoU counts.
+
+    Args:
+        logits: (B, C, h, w) class logits at stride ``H / h``.
+        labels: (B, H, W) integer class ids, :data:`IGNORE_LABEL` ignored.
+        stride: loss grid (px), as in :func:`segmentation_loss`.
+    Returns:
+        scalar (0 if every pixel is ignored).
+    """
+    logits, labels = _on_loss_grid(logits, labels, stride)
+    probs = logits.softmax(dim=1).permute(0, 2, 3, 1).reshape(-1, logits.shape[1])
+    labels = labels.reshape(-1)
+    keep = labels != IGNORE_LABEL
+    if not keep.any():
+        return logits.sum() * 0.0
+    probs, labels = probs[keep], labels[keep]
+    losses = []
+    for c in torch.unique(labels).tolist():
+        fg = (labels == c).to(probs.dtype)
+        errors, order = torch.sort((fg - probs[:, c]).abs(), descending=True)
+        fg = fg[order]
+        total = fg.sum()
+        intersection = total - fg.cumsum(0)
+        union = total + (1.0 - fg).cumsum(0)
+        jaccard = 1.0 - intersection / union
+        grad = torch.cat([jaccard[:1], jaccard[1:] - jaccard[:-1]])
+        losses.append(torch.dot(errors, grad))
+    return torch.stack(losses).mean()
+
+
+def segmentation_loss(logits: torch.Tensor, labels: torch.Tensor,
+                      class_weights: torch.Tensor | None = None,
+                      stride: int = 1) -> torch.Tensor:
+    """Multi-class cross-entropy (paper eq. 8).
+
+    Args:
+        logits: (B, C, h, w) class logits at stride ``s = H / h`` (integer).
+        labels: (B, H, W) integer class ids, :data:`IGNORE_LABEL` (255) ignored.
+        class_weights: optional (C,) per-class weights.
+        stride: ``s`` (px), the grid the CE is taken on: labels are sampled at the centres of
+            the ``s x s`` cells (pixel ``s*i + s//2``) and logits coarser than that grid are
+            upsampled bilinearly to it. 1: every pixel (the paper); the logit stride (4): no
+            upsampling, ~16x cheaper, but the samples miss a 2 px wide line at half of its
+            possible positions; 2: ~4x cheaper than 1, and every line 2 px wide is sampled.
+    Returns:
+        scalar: mean CE over labelled pixels (0 if every pixel is ignored).
+    """
+    logits, labels = _on_loss_grid(logits, labels, stride)
     if not (labels != IGNORE_LABEL).any():
         return logits.sum() * 0.0
     return F.cross_entropy(logits, labels, weight=class_weights, ignore_index=IGNORE_LABEL)
@@ -323,10 +370,17 @@ class MultiTaskLoss:
         l_seg = segmentation_loss(pred['segmentation_logits'], batch['label'],
                                   class_weights=self.class_weights,
                                   stride=c['seg_loss_stride'])
+        l_lovasz = None
+        if c['seg_lovasz_weight'] > 0:
+            l_lovasz = lovasz_softmax_loss(pred['segmentation_logits'], batch['label'],
+                                           stride=c['seg_loss_stride'])
+            l_seg = l_seg + c['seg_lovasz_weight'] * l_lovasz
         total = c['w_kp'] * l_kp + c['w_desc'] * l_desc + c['w_seg'] * l_seg
         logs = {'loss': float(total.detach()), 'kp': float(l_kp.detach()),
                 'desc': float(l_desc.detach()), 'seg': float(l_seg.detach()),
                 'pos_sim': float(stats['pos_sim']), 'neg_sim': float(stats['neg_sim'])}
         if l_cell is not None:
             logs['kp_cell'] = float(l_cell.detach())
+        if l_lovasz is not None:
+            logs['seg_lovasz'] = float(l_lovasz.detach())
         return total, logs
