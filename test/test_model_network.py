@@ -14,6 +14,7 @@ from semfeat_ros.model.losses import (
     descriptor_loss,
     keypoint_cell_loss,
     keypoint_loss,
+    lovasz_softmax_loss,
     sample_descriptors,
     segmentation_loss,
 )
@@ -154,6 +155,33 @@ def test_seg_layers_deepen_the_stride4_decoder_and_keep_old_keys() -> None:
                                    atol=1e-4, rtol=1e-4)
     with pytest.raises(ModelConfigError, match='seg_layers'):
         SemFeatNet({**small, 'seg_layers': 0})
+
+
+def test_seg_stride_2_refines_residually_from_the_stride4_logits() -> None:
+    small = {'encoder_channels': [8, 16, 24], 'decoder_channels': 16, 'descriptor_dim': 16,
+             'seg_channels': 8, 'task_dim': 8, 'mixer_dim': 8}
+    torch.manual_seed(0)
+    coarse = SemFeatNet(small).eval()
+    fine = SemFeatNet({**small, 'seg_stride': 2}).eval()
+    extra = set(fine.state_dict()) - set(coarse.state_dict())
+    assert extra and all(k.startswith(('seg_fine.', 'seg_fine_head.')) for k in extra)
+    fine.load_state_dict(coarse.state_dict(), strict=False)
+    x = torch.randn(1, 3, 32, 64)
+    with torch.inference_mode():
+        ref = coarse(x)['segmentation_logits']
+        out = fine(x)['segmentation_logits']
+        assert out.shape == (1, 19, 16, 32)
+        # the zero-initialised correction: exactly the upsampled stride-4 logits
+        up = torch.nn.functional.interpolate(ref, size=(16, 32), mode='bilinear',
+                                             align_corners=False)
+        torch.testing.assert_close(out, up)
+        torch.nn.init.normal_(fine.seg_fine_head.weight)
+        moved = fine(x)['segmentation_logits']
+        assert not torch.allclose(moved, up)
+        torch.testing.assert_close(fuse_batchnorm(fine)(x)['segmentation_logits'], moved,
+                                   atol=1e-4, rtol=1e-4)
+    with pytest.raises(ModelConfigError, match='seg_stride'):
+        SemFeatNet({**small, 'seg_stride': 8})
 
 
 def test_config_and_input_validation() -> None:
@@ -356,6 +384,37 @@ def test_segmentation_loss_between_logit_and_label_resolution() -> None:
     assert not torch.allclose(segmentation_loss(logits, labels, stride=4), expected)
     with pytest.raises(ModelInputError, match='finer than the loss stride'):
         segmentation_loss(torch.randn(2, 19, 8, 12), labels, stride=2)
+
+
+def test_lovasz_softmax_is_one_minus_the_miou_of_hard_predictions() -> None:
+    torch.manual_seed(2)
+    labels = torch.randint(0, 4, (2, 8, 8))
+    pred = torch.randint(0, 4, (2, 8, 8))
+    labels[0, 0, :3] = 255
+    logits = F.one_hot(pred, 5).permute(0, 3, 1, 2).float() * 100.0  # class 4: never present
+    keep = labels != 255
+    ious = [((labels == c) & (pred == c) & keep).sum()
+            / (((labels == c) | (pred == c)) & keep).sum()
+            for c in torch.unique(labels[keep]).tolist()]
+    expected = 1.0 - torch.stack(ious).float().mean()
+    torch.testing.assert_close(lovasz_softmax_loss(logits, labels), expected)
+    assert lovasz_softmax_loss(F.one_hot(labels.clamp(max=4), 5).permute(0, 3, 1, 2).float()
+                               * 100.0, labels).item() == pytest.approx(0.0, abs=1e-6)
+    soft = torch.randn(2, 5, 4, 4, requires_grad=True)  # stride 2: on the 4 x 4 grid
+    loss = lovasz_softmax_loss(soft, labels, stride=2)
+    loss.backward()
+    assert 0.0 < loss.item() < 1.0 and soft.grad.abs().sum() > 0
+    assert lovasz_softmax_loss(soft, torch.full((2, 8, 8), 255)).item() == 0.0
+    # in the multi-task loss: added to L_seg with its weight, and logged
+    net = SemFeatNet({'encoder_channels': [8, 8, 16], 'decoder_channels': 16}).eval()
+    out = net(torch.randn(2, 3, 32, 32))
+    batch = {'kp_target': torch.zeros(2, 32, 32), 'kp_valid': torch.ones(2, 32, 32, dtype=bool),
+             'label': torch.randint(0, 19, (2, 32, 32)), 'points_a': torch.rand(1, 4, 2) * 31,
+             'points_b': torch.rand(1, 4, 2) * 31, 'corr_valid': torch.ones(1, 4, dtype=bool)}
+    _, plain = MultiTaskLoss({})(out, batch)
+    _, both = MultiTaskLoss({'seg_lovasz_weight': 0.5})(out, batch)
+    assert 'seg_lovasz' not in plain
+    assert both['seg'] == pytest.approx(plain['seg'] + 0.5 * both['seg_lovasz'], rel=1e-5)
 
 
 def test_multitask_loss_weights() -> None:
