@@ -23,7 +23,14 @@ from semfeat_ros.model.metrics import (
     subset_iou,
 )
 from semfeat_ros.model.semfeatnet import SemFeatNet
-from semfeat_ros.model.training import load_train_conf, lr_factor, main, set_frozen
+from semfeat_ros.model.training import (
+    init_from,
+    load_train_conf,
+    lr_factor,
+    main,
+    set_frozen,
+    set_train_only,
+)
 from semfeat_ros.model.weights_io import load_weights, state_dict_allclose
 from semfeat_ros.tools.train import cli, read_config
 
@@ -93,6 +100,71 @@ def test_resume_reproduces_an_uninterrupted_run(shards: Path, tmp_path: Path) ->
         torch.testing.assert_close(va, vb, atol=1e-5, rtol=1e-4)
     np.testing.assert_allclose(_losses(tmp_path / 'full'), _losses(tmp_path / 'chunked'),
                                rtol=1e-4)
+
+
+def test_fine_tune_trains_only_the_named_parameters(shards: Path, tmp_path: Path) -> None:
+    main(_conf(shards, steps=4, val_every=4), tmp_path / 'base', progress=False)
+    net = {**TINY['network'], 'seg_stride': 2}
+    conf = _conf(shards, steps=6, val_every=6, network=net, warmup_fraction=0.0,
+                 init_weights=str(tmp_path / 'base' / 'semfeat.safetensors'),
+                 train_only=['decoder1.seg', 'mixer.seg', 'seg_'],
+                 loss={'seg_loss_stride': 2})
+    main(conf, tmp_path / 'fine', export=tmp_path / 'export', progress=False)
+    base, _ = load_weights(tmp_path / 'base')
+    tuned, meta = load_weights(tmp_path / 'fine')
+    assert meta['training']['initialised_tensors'] and \
+        all(k.startswith('seg_fine') for k in meta['training']['initialised_tensors'])
+    old, new = base.state_dict(), tuned.state_dict()
+    changed = {k for k in old if not torch.equal(old[k], new[k])}
+    assert changed and all(k.startswith(('decoder1.seg.', 'mixer.seg.', 'seg_')) for k in changed)
+    assert new['seg_fine_head.weight'].abs().sum() > 0  # the zero-initialised head learned
+    x = torch.randn(1, 3, 64, 96)
+    with torch.inference_mode():  # keypoints and descriptors exactly as before
+        a, b = base.eval()(x), tuned.eval()(x)
+    for k in ('heatmap', 'descriptors'):
+        torch.testing.assert_close(a[k], b[k], atol=0, rtol=0)
+    assert b['segmentation_logits'].shape[-2:] == (32, 48)
+    card = (tmp_path / 'export' / 'MODEL_CARD.md').read_text()
+    assert 'Fine-tuned from' in card and 'stride 2 logits' in card
+    with pytest.raises(ModelConfigError, match='match no parameter'):
+        main(_conf(shards, train_only=['seg_nope']), tmp_path / 'o', progress=False)
+    with pytest.raises(ModelConfigError, match='other shapes'):
+        init_from(SemFeatNet({**TINY['network'], 'seg_channels': 4}),
+                  tmp_path / 'base' / 'semfeat.safetensors')
+
+
+def test_config_base_and_network_overrides(tmp_path: Path) -> None:
+    (tmp_path / 'model.yaml').write_text(yaml.safe_dump(
+        {'network': {'seg_channels': 8, 'seg_stride': 2}}))
+    (tmp_path / 'a.yaml').write_text(yaml.safe_dump(
+        {'steps': 10, 'lr': 0.1, 'network': 'model.yaml', 'network_overrides': {'seg_stride': 4},
+         'loss': {'w_kp': 2.0, 'w_seg': 3.0}}))
+    (tmp_path / 'b.yaml').write_text(yaml.safe_dump(
+        {'base': 'a.yaml', 'steps': 5, 'network_overrides': {'seg_stride': 2},
+         'loss': {'w_seg': 0.5}}))
+    a, b = read_config(tmp_path / 'a.yaml'), read_config(tmp_path / 'b.yaml')
+    assert a['network'] == {'seg_channels': 8, 'seg_stride': 4} and a['steps'] == 10
+    assert b['network'] == {'seg_channels': 8, 'seg_stride': 2}
+    assert b['steps'] == 5 and b['lr'] == 0.1 and b['loss'] == {'w_kp': 2.0, 'w_seg': 0.5}
+    assert 'base' not in b and 'network_overrides' not in b
+    (tmp_path / 'c.yaml').write_text(yaml.safe_dump({'base': 'd.yaml'}))
+    (tmp_path / 'd.yaml').write_text(yaml.safe_dump({'base': 'c.yaml'}))
+    with pytest.raises(ValueError, match='cycle'):
+        read_config(tmp_path / 'c.yaml')
+    (tmp_path / 'e.yaml').write_text(yaml.safe_dump({'base': 'missing.yaml'}))
+    with pytest.raises(FileNotFoundError, match='missing.yaml'):
+        read_config(tmp_path / 'e.yaml')
+
+
+def test_set_train_only_keeps_frozen_batchnorm_statistics() -> None:
+    net = SemFeatNet({'encoder_channels': [8, 8, 16], 'decoder_channels': 8}).train()
+    set_train_only(net, ['seg_'])
+    enc_bn, seg_bn = net.encoder.blocks[0][0][1], net.seg_reduce[1]
+    assert not enc_bn.training and seg_bn.training
+    before = enc_bn.running_mean.clone()
+    net(torch.randn(2, 3, 32, 32) * 3 + 1)['segmentation_logits'].mean().backward()
+    torch.testing.assert_close(enc_bn.running_mean, before)
+    assert all((p.grad is not None) == n.startswith('seg_') for n, p in net.named_parameters())
 
 
 def test_cli(shards: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

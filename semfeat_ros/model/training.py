@@ -60,7 +60,7 @@ from semfeat_ros.model.metrics import (
     subset_iou,
 )
 from semfeat_ros.model.semfeatnet import SemFeatNet, count_parameters, normalize_image
-from semfeat_ros.model.weights_io import WEIGHTS_NAME, save_weights
+from semfeat_ros.model.weights_io import WEIGHTS_NAME, load_weights, save_weights
 
 default_train_conf: dict[str, Any] = {
     'seed': 0,  # seed of every random choice (data, init)
@@ -86,6 +86,10 @@ default_train_conf: dict[str, Any] = {
     'num_threads': 2,  # torch intra-op threads
     'channels_last': True,  # NHWC memory format for training (measured ~1.5x faster on CPU)
     'network': {},  # SemFeatNet conf overrides
+    'init_weights': None,  # fine-tune: start from these weights (.safetensors + .json, relative
+    #                        to the cwd); modules the network adds keep their initialisation
+    'train_only': [],  # parameter-name prefixes to train, the rest frozen with its BatchNorm
+    #                    statistics (e.g. [decoder1.seg, mixer.seg, seg_]); [] = everything
     'loss': {},  # MultiTaskLoss conf overrides
     'data': {},  # PairGenerator conf overrides
 }
@@ -117,6 +121,12 @@ def load_train_conf(conf: dict[str, Any] | None) -> dict[str, Any]:
                                f'{c["freeze_levels"]!r}')
     if not float(c['lr']) > 0:
         raise ModelConfigError(f'lr must be > 0, got {c["lr"]!r}')
+    if not isinstance(c['train_only'], list) or \
+            not all(isinstance(x, str) and x for x in c['train_only']):
+        raise ModelConfigError(f'train_only must be a list of parameter-name prefixes, got '
+                               f'{c["train_only"]!r}')
+    if c['init_weights'] is not None and not isinstance(c['init_weights'], str):
+        raise ModelConfigError(f'init_weights must be a path or null, got {c["init_weights"]!r}')
     if any(int(x) % stride for x in c['data']['crop_size']):
         raise ModelConfigError(f'data.crop_size {c["data"]["crop_size"]} must be multiples of '
                                f'the network stride, {stride} px')
@@ -199,6 +209,48 @@ def set_frozen(model: SemFeatNet, levels: int, frozen: bool) -> None:
         for p in block.parameters():
             p.requires_grad_(not frozen)
         block.train(not frozen and model.training)
+
+
+def set_train_only(model: SemFeatNet, prefixes: list[str]) -> None:
+    """Freeze every parameter whose name starts with none of ``prefixes`` and keep the
+    BatchNorm layers there in eval mode, so the frozen tasks' outputs stay exactly as they were
+    ([] = train everything). Call it after ``model.train()``."""
+    if not prefixes:
+        return
+    keep = tuple(prefixes)
+    for name, p in model.named_parameters():
+        if not name.startswith(keep):
+            p.requires_grad_(False)
+    for name, m in model.named_modules():
+        if isinstance(m, torch.nn.modules.batchnorm._BatchNorm) and not name.startswith(keep):
+            m.eval()
+
+
+def init_from(model: SemFeatNet, path: Path) -> list[str]:
+    """Load the weights at ``path`` into ``model`` for fine-tuning; returns the names of the
+    tensors that stay initialised (modules ``model`` has and the weights do not).
+
+    Raises:
+        ModelConfigError: the weights have tensors ``model`` lacks, or other shapes.
+    """
+    src, _ = load_weights(path)
+    state = src.state_dict()
+    own = model.state_dict()
+    extra = sorted(set(state) - set(own))
+    shapes = sorted(k for k in set(state) & set(own) if state[k].shape != own[k].shape)
+    if extra or shapes:
+        raise ModelConfigError(f'init_weights {path}: tensors the network lacks {extra[:5]}, '
+                               f'other shapes {shapes[:5]}')
+    model.load_state_dict(state, strict=False)
+    return sorted(set(own) - set(state))
+
+
+def check_prefixes(model: SemFeatNet, prefixes: list[str]) -> None:
+    """Every ``train_only`` prefix must name at least one parameter."""
+    names = [n for n, _ in model.named_parameters()]
+    unused = [p for p in prefixes if not any(n.startswith(p) for n in names)]
+    if unused:
+        raise ModelConfigError(f'train_only prefixes {unused} match no parameter of the network')
 
 
 PEAK_THRESHOLDS = (0.01, 0.05, 0.2)
@@ -402,6 +454,11 @@ def main(conf: dict[str, Any], out: Path, *, resume: bool = False, export: Path 
     validator = Validator(vgen, c)
 
     model = SemFeatNet(c['network'])
+    check_prefixes(model, c['train_only'])
+    fresh: list[str] = []
+    if c['init_weights'] is not None:
+        init = Path(c['init_weights'])
+        fresh = init_from(model, init if init.is_absolute() or base is None else base / init)
     if c['channels_last']:
         model = model.to(memory_format=torch.channels_last)
     class_counts = gen.class_counts(c['network']['num_classes'])
@@ -439,6 +496,7 @@ def main(conf: dict[str, Any], out: Path, *, resume: bool = False, export: Path 
         t_data = time.perf_counter() - t_last  # waiting for the data loader
         frozen = step < warm_steps
         set_frozen(model, c['freeze_levels'], frozen)
+        set_train_only(model, c['train_only'])
         for g in opt.param_groups:
             g['lr'] = c['lr'] * lr_factor(step, c)
         batch = to_tensors(np_batch)
@@ -491,6 +549,8 @@ def main(conf: dict[str, Any], out: Path, *, resume: bool = False, export: Path 
             'photos': [gen.frames[i].name for i in gen.photo_frames],
             'seg_class_weights': [round(float(x), 4) for x in class_weights],
             'parameters': count_parameters(model),
+            'init_weights': c['init_weights'], 'initialised_tensors': fresh,
+            'train_only': c['train_only'],
             'finished': datetime.now(UTC).isoformat(timespec='seconds'),
             'validation': val_metrics,
         },
@@ -549,6 +609,15 @@ def model_card(model: SemFeatNet, meta: dict[str, Any], conf: dict[str, Any],
                        for t in PEAK_THRESHOLDS)
     pix = net.get('kp_pixel_channels', 0)
     pixels = f', grey 8x8 input cells via {pix}-channel 1x1 layers' if pix else ''
+    seg_row = ('stride 4 logits' if net.get('seg_stride', 4) == 4 else
+               'stride 4 logits + a stride-2 residual refinement (F1 skip): stride 2 logits')
+    finetune = ''
+    if t.get('init_weights'):
+        frozen = (f'; only parameters starting with {t["train_only"]} trained, the rest '
+                  '(BatchNorm statistics included) frozen' if t.get('train_only') else '')
+        finetune = (f'\n\nFine-tuned from `{t["init_weights"]}`{frozen}; tensors new in this '
+                    f'network ({len(t.get("initialised_tensors", []))}) start from their '
+                    'initialisation.')
     kp_row = (f'64 cell logits at stride 8 (inputs: kp decoder, stride-2 features{pixels}) '
               '-> depth-to-space -> sigmoid heatmap')
     return f"""# SemFeatNet weights (semfeat_ros)
@@ -566,7 +635,7 @@ segmentation). Architecture and design decisions: `semfeat_ros/model/semfeatnet.
 | network input | {meta['input_size'][0]}x{meta['input_size'][1]} px for a full frame |
 | keypoints | {kp_row} |
 | descriptors | stride 8, L2-normalised, sampled bilinearly at keypoints |
-| segmentation | stride 4 logits, classes of `config/labels.yaml` |
+| segmentation | {seg_row}, classes of `config/labels.yaml` |
 | dropped by default | sky, car, pedestrian (extractor `drop_classes`, config/model.yaml) |
 | trained | {t['finished']} |
 
@@ -596,7 +665,7 @@ BCE positive weight {conf['loss']['kp_pos_weight']}, cell softmax CE weight
 {conf['loss']['desc_pos_margin']}, alpha = {conf['loss']['desc_neg_margin']}, negatives
 `{conf['loss']['desc_negatives']}` beyond {conf['loss']['desc_neg_radius']} px; segmentation CE
 class weights (median frequency / frequency) ** {conf['loss']['seg_class_balance']} clipped to
-{conf['loss']['seg_max_class_weight']}: {t.get('seg_class_weights')}.
+{conf['loss']['seg_max_class_weight']}: {t.get('seg_class_weights')}.{finetune}
 
 Rebuild: `semfeat-train --config config/train.yaml --out {out} --export semfeat_ros/weights`.
 

@@ -38,30 +38,61 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def read_config(path: Path) -> dict[str, Any]:
-    """Training YAML -> dict. ``network`` may name a YAML file (relative to ``path``) whose
-    ``network`` mapping is used, so config/model.yaml stays the one place of the architecture.
-    Shard globs stay relative to the current directory."""
+def _load_yaml(path: Path) -> dict[str, Any]:
     if not path.is_file():
         raise FileNotFoundError(f'config file not found: {path}')
     try:
-        conf = yaml.safe_load(path.read_text())
+        data = yaml.safe_load(path.read_text())
     except yaml.YAMLError as exc:
         raise ValueError(f'{path}: invalid YAML ({exc})') from exc
-    if not isinstance(conf, dict):
+    if not isinstance(data, dict):
         raise ValueError(f'{path}: expected a mapping at the top level')
+    return data
+
+
+def _with_bases(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
+    """The YAML at ``path`` over its ``base`` file (relative to ``path``, recursively): keys set
+    here replace the base's, mappings (loss, data, network_overrides, ...) are merged key by
+    key."""
+    path = path.resolve()
+    if path in seen:
+        raise ValueError(f'{path}: config bases form a cycle')
+    conf = _load_yaml(path)
+    base = conf.pop('base', None)
+    if base is None:
+        return conf
+    if not isinstance(base, str):
+        raise ValueError(f'{path}: base must be a file name, got {base!r}')
+    merged = _with_bases(path.parent / base, (*seen, path))
+    for key, value in conf.items():
+        if isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key] = {**merged[key], **value}
+        else:
+            merged[key] = value
+    return merged
+
+
+def read_config(path: Path) -> dict[str, Any]:
+    """Training YAML -> dict. ``base`` names a config (relative to ``path``) whose keys this one
+    overrides (a fine-tuning stage over the main recipe). ``network`` may name a YAML file
+    (relative to ``path``) whose ``network`` mapping is used, so config/model.yaml stays the one
+    place of the architecture; ``network_overrides`` then changes single keys of it. Shard globs
+    stay relative to the current directory."""
+    conf = _with_bases(path)
     net = conf.get('network')
     if isinstance(net, str):
         npath = (path.parent / net).resolve()
         if not npath.is_file():
             raise FileNotFoundError(f'{path}: network file not found: {npath}')
-        try:
-            ndata = yaml.safe_load(npath.read_text())
-        except yaml.YAMLError as exc:
-            raise ValueError(f'{npath}: invalid YAML ({exc})') from exc
-        if not isinstance(ndata, dict) or not isinstance(ndata.get('network'), dict):
+        ndata = _load_yaml(npath)
+        if not isinstance(ndata.get('network'), dict):
             raise ValueError(f'{npath}: expected a "network" mapping')
         conf['network'] = ndata['network']
+    over = conf.pop('network_overrides', None) or {}
+    if not isinstance(over, dict) or not isinstance(conf.get('network', {}), dict):
+        raise ValueError(f'{path}: network_overrides must be a mapping over a network mapping')
+    if over:
+        conf['network'] = {**conf.get('network', {}), **over}
     return conf
 
 
