@@ -403,7 +403,8 @@ def _save_checkpoint(path: Path, model: SemFeatNet, opt: torch.optim.Optimizer, 
 
 def main(conf: dict[str, Any], out: Path, *, resume: bool = False, export: Path | None = None,
          base: Path | None = None, progress: bool = True,
-         stop_after: int | None = None) -> dict[str, Any]:
+         stop_after: int | None = None, config_name: str = 'config/train.yaml'
+         ) -> dict[str, Any]:
     """Train, validate, checkpoint and write ``out/semfeat.safetensors`` (+ JSON).
 
     Args:
@@ -415,6 +416,7 @@ def main(conf: dict[str, Any], out: Path, *, resume: bool = False, export: Path 
         progress: show a tqdm progress bar.
         stop_after: pause after this global step (checkpoint written; continue later with
             ``resume=True``), e.g. to train in chunks on a shared machine.
+        config_name: the config file ``conf`` came from (for the model card's rebuild command).
     Returns:
         summary dict (steps, parameters, final validation metrics, paths); ``stopped`` is
         True (and no weights are written) when ``stop_after`` paused the run.
@@ -563,7 +565,7 @@ def main(conf: dict[str, Any], out: Path, *, resume: bool = False, export: Path 
         export.mkdir(parents=True, exist_ok=True)
         for suffix in ('.safetensors', '.json'):
             shutil.copyfile(weights.with_suffix(suffix), export / f'{WEIGHTS_NAME}{suffix}')
-        (export / 'MODEL_CARD.md').write_text(model_card(model, meta, c, out))
+        (export / 'MODEL_CARD.md').write_text(model_card(model, meta, c, out, config_name))
         for name in ('losses.png', 'metrics.png'):
             src = out / 'plots' / name
             if src.is_file():
@@ -593,7 +595,7 @@ def targets_table(v: dict[str, Any]) -> str:
 
 
 def model_card(model: SemFeatNet, meta: dict[str, Any], conf: dict[str, Any],
-               out: Path) -> str:
+               out: Path, config_name: str = 'config/train.yaml') -> str:
     """MODEL_CARD.md text for exported weights, filled from the actual run."""
     t = meta['training']
     v = t['validation']
@@ -618,6 +620,14 @@ def model_card(model: SemFeatNet, meta: dict[str, Any], conf: dict[str, Any],
         finetune = (f'\n\nFine-tuned from `{t["init_weights"]}`{frozen}; tensors new in this '
                     f'network ({len(t.get("initialised_tensors", []))}) start from their '
                     'initialisation.')
+    rebuild = (f'train `{t["init_weights"]}` first (the stage its config names as `base`), '
+               'then ' if t.get('init_weights') else '')
+    schedule = (f'first {conf["warmup_fraction"]:.0%} of the steps with the first '
+                f'{conf["freeze_levels"]} encoder block(s) frozen (the paper\'s 20 of 100 '
+                'epochs), then joint fine-tuning with cosine decay'
+                if conf['warmup_fraction'] > 0 else 'cosine decay after the ramp')
+    lw = conf['loss'].get('seg_lovasz_weight', 0.0)
+    lovasz = f'; + Lovasz-softmax (weight {lw}) on the same grid' if lw else ''
     kp_row = (f'64 cell logits at stride 8 (inputs: kp decoder, stride-2 features{pixels}) '
               '-> depth-to-space -> sigmoid heatmap')
     return f"""# SemFeatNet weights (semfeat_ros)
@@ -656,18 +666,16 @@ segmentation). Architecture and design decisions: `semfeat_ros/model/semfeatnet.
 ## Recipe
 
 AdamW, lr {conf['lr']}, weight decay {conf['weight_decay']}, {t['steps']} steps x
-{t['batch_size']} pairs of {t['crop_size'][0]}x{t['crop_size'][1]} px crops; first
-{conf['warmup_fraction']:.0%} of the steps with the first {conf['freeze_levels']} encoder
-block(s) frozen (the paper's 20 of 100 epochs), then joint fine-tuning with cosine decay. Loss
+{t['batch_size']} pairs of {t['crop_size'][0]}x{t['crop_size'][1]} px crops; {schedule}. Loss
 weights: kp {conf['loss']['w_kp']}, desc {conf['loss']['w_desc']}, seg {conf['loss']['w_seg']};
 BCE positive weight {conf['loss']['kp_pos_weight']}, cell softmax CE weight
 {conf['loss'].get('kp_cell_weight', 0.0)}; descriptor margins m =
 {conf['loss']['desc_pos_margin']}, alpha = {conf['loss']['desc_neg_margin']}, negatives
 `{conf['loss']['desc_negatives']}` beyond {conf['loss']['desc_neg_radius']} px; segmentation CE
 class weights (median frequency / frequency) ** {conf['loss']['seg_class_balance']} clipped to
-{conf['loss']['seg_max_class_weight']}: {t.get('seg_class_weights')}.{finetune}
+{conf['loss']['seg_max_class_weight']}: {t.get('seg_class_weights')}{lovasz}.{finetune}
 
-Rebuild: `semfeat-train --config config/train.yaml --out {out} --export semfeat_ros/weights`.
+Rebuild: {rebuild}`semfeat-train --config {config_name} --out {out} --export semfeat_ros/weights`.
 
 ## Validation (held-out seeds, full frames, final step)
 

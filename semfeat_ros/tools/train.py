@@ -105,7 +105,8 @@ def cli(argv: list[str] | None = None) -> int:
             conf['steps'] = args.steps
         from semfeat_ros.model.training import main
         summary = main(conf, args.out, resume=args.resume, export=args.export,
-                       progress=not args.no_progress, stop_after=args.stop_after)
+                       progress=not args.no_progress, stop_after=args.stop_after,
+                       config_name=str(args.config))
     except (OSError, ValueError, RuntimeError) as exc:
         print(f'{PROG}: error: {error_line(exc)}', file=sys.stderr)
         return 1
