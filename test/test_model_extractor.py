@@ -15,14 +15,19 @@ from semfeat_ros.model.errors import (
     WeightsFormatError,
     WeightsNotFoundError,
 )
-from semfeat_ros.model.extractor import FeatureExtractor, refine_subpixel, simple_nms
+from semfeat_ros.model.extractor import (
+    FeatureExtractor,
+    class_map,
+    refine_subpixel,
+    simple_nms,
+)
 from semfeat_ros.model.semfeatnet import SemFeatNet
 
 NAMES = ['road', 'sidewalk', 'parking_line', 'lane_divider', 'road_marking', 'curb', 'wall',
          'pillar', 'ceiling', 'light', 'sign', 'pole', 'railing', 'barrier', 'building',
          'vegetation', 'sky', 'car', 'pedestrian']
 SMALL = {'encoder_channels': [8, 16, 16, 24], 'decoder_channels': 16, 'descriptor_dim': 32,
-         'seg_channels': 8, 'task_dim': 8, 'mixer_dim': 8}
+         'seg_channels': 8, 'task_dim': 8, 'mixer_dim': 8, 'seg_stride': 2}  # as shipped
 
 
 class PeakNet(SemFeatNet):
@@ -104,25 +109,26 @@ def test_extract_full_size_fisheye_frame() -> None:
     assert f.descriptors.shape == (300, 32) and f.descriptors.dtype == np.float32
     np.testing.assert_allclose(np.linalg.norm(f.descriptors, axis=1), 1.0, atol=1e-5)
     assert f.labels.dtype == np.uint8 and f.labels.max() < 19
-    assert f.mask.shape == (128, 160) and f.mask.dtype == np.uint8
-    assert f.mask_scale == (12.0, 12.0) and f.image_size == (1920, 1536)
+    # the default mask is the stride-2 logit grid: 320x256, 6 input px per mask px
+    assert f.mask.shape == (256, 320) and f.mask.dtype == np.uint8
+    assert f.mask_scale == (6.0, 6.0) and f.image_size == (1920, 1536)
     # every keypoint lies inside the image circle
     rays = cam.unproject(f.keypoints.astype(np.float64), check=False)
     assert np.isfinite(rays).all()
     # labels agree with the mask under each keypoint (bilinear logits vs cell argmax: mostly)
-    cells = np.clip(((f.keypoints + 0.5) / 12.0).astype(int), 0, [159, 127])
+    cells = np.clip(((f.keypoints + 0.5) / 6.0).astype(int), 0, [319, 255])
     assert np.mean(f.mask[cells[:, 1], cells[:, 0]] == f.labels) > 0.7
     # outside the image circle the mask says 'no class' (255), inside it holds class ids
-    circle = cam.scaled(160, 128).valid_mask()
+    circle = cam.scaled(320, 256).valid_mask()
     assert (~circle).any() and (f.mask[~circle] == 255).all() and f.mask[circle].max() < 19
-    # the input-resolution mask is the seg-grid mask resized nearest (blocks of 12 px)
+    # the input-resolution mask is the seg-grid mask resized nearest (blocks of 6 px)
     f_in = _extractor(net, detection_threshold=0.0, max_keypoints=300, drop_classes=[],
                       mask_resolution='input').extract(image, camera=cam)
     assert f_in.mask.shape == (1536, 1920) and f_in.mask_scale == (1.0, 1.0)
     full = cam.valid_mask()
-    both = circle & full[6::12, 6::12]  # (the two circles differ on their rim cells only)
+    both = circle & full[3::6, 3::6]  # (the two circles differ on their rim cells only)
     assert both.sum() > 0.99 * circle.sum()
-    np.testing.assert_array_equal(f_in.mask[6::12, 6::12][both], f.mask[both])
+    np.testing.assert_array_equal(f_in.mask[3::6, 3::6][both], f.mask[both])
     assert (f_in.mask[~full] == 255).all()
 
 
@@ -345,3 +351,12 @@ def test_backend_choice_and_errors(monkeypatch: pytest.MonkeyPatch) -> None:
     assert _extractor(net).backend == 'torch'
     with pytest.raises(ModelConfigError, match='pip install'):
         _extractor(net, backend='onnxruntime')
+
+
+def test_class_map_is_the_argmax_over_classes() -> None:
+    torch.manual_seed(0)
+    logits = torch.randn(1, 19, 12, 20)
+    logits[0, 3, 0, 0] = logits[0, 7, 0, 0] = 50.0  # a tie goes to the lower class
+    m = class_map(logits)
+    assert m.dtype == np.uint8 and m.shape == (12, 20) and m[0, 0] == 3
+    np.testing.assert_array_equal(m, logits[0].argmax(dim=0).numpy())

@@ -249,12 +249,17 @@ def test_metrics_hand_examples() -> None:
 
 def test_shipped_config_files_match_the_code() -> None:
     cfg = load_model_yaml()
-    assert cfg['network'] == SemFeatNet.default_conf  # the architecture of the shipped weights
+    shipped, meta = load_weights(None)
+    assert cfg['network'] == shipped.conf  # the architecture of the shipped weights
     raw = yaml.safe_load((REPO / 'config' / 'model.yaml').read_text())
     assert set(raw['extractor']) == set(FeatureExtractor.default_conf)  # every key documented
     assert set(raw['network']) == set(SemFeatNet.default_conf)
     conf = load_train_conf(read_config(REPO / 'config' / 'train.yaml'))
-    assert conf['network'] == SemFeatNet.default_conf
+    assert conf['network'] == {**shipped.conf, 'seg_stride': 4}  # stage 1 (v3)
+    stage2 = load_train_conf(read_config(REPO / 'config' / 'finetune_seg.yaml'))
+    assert stage2['network'] == shipped.conf  # stage 2: the shipped weights
+    assert stage2['init_weights'] and stage2['train_only'] and stage2['data'] == conf['data']
+    assert meta['training']['init_weights'] == stage2['init_weights']
     # paper: AdamW 2e-4 over 100 epochs; the shipped recipe raises it for its CPU step budget
     assert conf['lr'] == 5e-4 and conf['warmup_fraction'] == 0.2
     assert conf['data']['rotation_deg'] == 30.0 and conf['data']['scale_range'] == [0.8, 1.2]

@@ -206,8 +206,8 @@ class SemFeatNet(nn.Module):
         'seg_channels': 32,  # width of the segmentation decoder at stride 4
         'seg_layers': 1,  # separable 3x3 layers of the segmentation decoder at stride 4 (v0-v3:
         #                   1; the first sees the F2 skip)
-        'seg_stride': 4,  # px, stride of the segmentation logits: 4 (v0-v3) or 2 (adds a
-        #                   residual refinement with the F1 skip; the mask gets 4x the pixels)
+        'seg_stride': 4,  # px, stride of the segmentation logits: 4 (v0-v3) or 2 (v5, shipped:
+        #                   a residual refinement with the F1 skip over the stride-4 logits)
         'num_classes': 19,  # C, semantic classes (config/labels.yaml)
     }
 

@@ -76,7 +76,7 @@ class FeatureNodeConfig:
     resize_max: int = param(640, 'Longer side of the network input (px); frames are resized',
                             range=(64, 4096), read_only=True)
     mask_resolution: str = param('input', 'Size of the published mask: input image, network '
-                                 'input, or the 1/4-resolution segmentation grid',
+                                 'input, or the segmentation logit grid (network input / 2)',
                                  choices=('input', 'network', 'seg'), read_only=True)
     # off by default: with the v2 weights bf16 moves keypoints inside their 8x8 cells (the
     # keypoint head reads raw pixel values); on the demo bag the map's ATE went 0.11 -> 0.53 m
