@@ -260,6 +260,9 @@ def test_shipped_config_files_match_the_code() -> None:
     assert stage2['network'] == shipped.conf  # stage 2: the shipped weights
     assert stage2['init_weights'] and stage2['train_only'] and stage2['data'] == conf['data']
     assert meta['training']['init_weights'] == stage2['init_weights']
+    probe = load_train_conf(read_config(REPO / 'config' / 'finetune_joint.yaml'))
+    assert probe['network'] == shipped.conf and probe['train_only'] == []  # stage 3 (probe)
+    assert probe['loss'] == stage2['loss'] and probe['init_weights'] != stage2['init_weights']
     # paper: AdamW 2e-4 over 100 epochs; the shipped recipe raises it for its CPU step budget
     assert conf['lr'] == 5e-4 and conf['warmup_fraction'] == 0.2
     assert conf['data']['rotation_deg'] == 30.0 and conf['data']['scale_range'] == [0.8, 1.2]
