@@ -284,9 +284,14 @@ def test_weights_of_the_v1_layout_still_load(tmp_path: Path) -> None:
     assert loaded.kp_pixels is None and weights_io.state_dict_allclose(net, loaded)
 
 
-def test_onnxruntime_backend_agrees_with_torch() -> None:
+@pytest.mark.parametrize('extra', [{}, {'seg_stride': 2, 'seg_context_blocks': 2,
+                                        'seg_blocks': 1}])
+def test_onnxruntime_backend_agrees_with_torch(extra: dict) -> None:
     torch.manual_seed(0)
-    net = SemFeatNet(SMALL).eval()
+    net = SemFeatNet({**SMALL, **extra}).eval()
+    for name, m in net.named_modules():  # residual blocks away from their identity start
+        if name.startswith(('seg_context', 'seg_blocks')) and isinstance(m, torch.nn.BatchNorm2d):
+            torch.nn.init.uniform_(m.weight, 0.5, 1.5)
     image = np.random.default_rng(5).integers(0, 255, (300, 400, 3), dtype=np.uint8)
     eager = _extractor(net, backend='torch', detection_threshold=0.0, max_keypoints=200)
     ort = _extractor(net, backend='onnxruntime', detection_threshold=0.0, max_keypoints=200)

@@ -157,6 +157,41 @@ def test_seg_layers_deepen_the_stride4_decoder_and_keep_old_keys() -> None:
         SemFeatNet({**small, 'seg_layers': 0})
 
 
+def test_seg_context_blocks_start_as_the_identity_and_fold() -> None:
+    small = {'encoder_channels': [8, 16, 24], 'decoder_channels': 16, 'descriptor_dim': 16,
+             'seg_channels': 8, 'task_dim': 8, 'mixer_dim': 8, 'seg_stride': 2}
+    torch.manual_seed(0)
+    plain = SemFeatNet(small).eval()
+    assert not any(k.startswith(('seg_context', 'seg_blocks')) for k in plain.state_dict())
+    ctx = SemFeatNet({**small, 'seg_context_blocks': 5, 'seg_blocks': 2,
+                      'seg_block_expansion': 2}).eval()
+    extra = set(ctx.state_dict()) - set(plain.state_dict())
+    assert extra and all(k.startswith(('seg_context.', 'seg_blocks.')) for k in extra)
+    dilations = [b.body[3].dilation[0] for b in ctx.seg_context]
+    assert dilations == [1, 2, 4, 8, 1]
+    assert ctx.seg_context[0].body[0].out_channels == 32  # 16 x expansion 2
+    ctx.load_state_dict(plain.state_dict(), strict=False)
+    x = torch.randn(1, 3, 32, 64)
+    with torch.inference_mode():
+        ref = plain(x)
+        out = ctx(x)
+        for k in ('heatmap', 'descriptors', 'segmentation_logits'):  # new blocks: identity
+            torch.testing.assert_close(out[k], ref[k])
+        for name, m in ctx.named_modules():  # trained blocks: BN folding must stay exact
+            if name.startswith(('seg_context', 'seg_blocks')) and \
+                    isinstance(m, torch.nn.BatchNorm2d):
+                m.weight.data.uniform_(0.5, 1.5)
+                m.running_var.uniform_(0.5, 2.0)
+        moved = ctx(x)['segmentation_logits']
+        assert not torch.allclose(moved, ref['segmentation_logits'])
+        torch.testing.assert_close(ctx(x)['heatmap'], ref['heatmap'])  # only the seg branch
+        torch.testing.assert_close(fuse_batchnorm(ctx)(x)['segmentation_logits'], moved,
+                                   atol=1e-4, rtol=1e-4)
+    for key, bad in (('seg_context_blocks', -1), ('seg_blocks', -2), ('seg_block_expansion', 0)):
+        with pytest.raises(ModelConfigError, match=key):
+            SemFeatNet({**small, key: bad})
+
+
 def test_seg_stride_2_refines_residually_from_the_stride4_logits() -> None:
     small = {'encoder_channels': [8, 16, 24], 'decoder_channels': 16, 'descriptor_dim': 16,
              'seg_channels': 8, 'task_dim': 8, 'mixer_dim': 8}

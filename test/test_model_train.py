@@ -263,6 +263,11 @@ def test_shipped_config_files_match_the_code() -> None:
     probe = load_train_conf(read_config(REPO / 'config' / 'finetune_joint.yaml'))
     assert probe['network'] == shipped.conf and probe['train_only'] == []  # stage 3 (probe)
     assert probe['loss'] == stage2['loss'] and probe['init_weights'] != stage2['init_weights']
+    ctx = load_train_conf(read_config(REPO / 'config' / 'finetune_seg_ctx.yaml'))  # stage 3
+    assert ctx['network'] == {**shipped.conf, 'seg_context_blocks': 4, 'seg_blocks': 2}
+    assert ctx['train_only'] == stage2['train_only'] and ctx['loss'] == stage2['loss']
+    assert ctx['init_weights'] == probe['init_weights']  # stage 2's output
+    assert ctx['data']['pair_mix']['photo'] == 0.0 and ctx['data']['crop_size'] == [512, 384]
     # paper: AdamW 2e-4 over 100 epochs; the shipped recipe raises it for its CPU step budget
     assert conf['lr'] == 5e-4 and conf['warmup_fraction'] == 0.2
     assert conf['data']['rotation_deg'] == 30.0 and conf['data']['scale_range'] == [0.8, 1.2]

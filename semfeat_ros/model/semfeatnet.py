@@ -79,6 +79,35 @@ def separable_bn_relu(cin: int, cout: int) -> nn.Sequential:
         nn.BatchNorm2d(cout), nn.ReLU(inplace=True))
 
 
+class InvertedResidual(nn.Module):
+    """``x + BN(1x1(ReLU(BN(dw3x3(ReLU(BN(1x1(x))))))))``, MobileNetV2's block (stride 1).
+
+    The depthwise 3x3 convolution may be dilated (context at no extra cost). The last
+    BatchNorm's scale starts at zero, so a new block is the identity: inserted into trained
+    weights it leaves their output unchanged until it is trained.
+    """
+
+    def __init__(self, channels: int, expansion: int, dilation: int = 1) -> None:
+        super().__init__()
+        hidden = channels * expansion
+        self.body = nn.Sequential(
+            nn.Conv2d(channels, hidden, 1, bias=False), nn.BatchNorm2d(hidden),
+            nn.ReLU(inplace=True),
+            nn.Conv2d(hidden, hidden, 3, padding=dilation, dilation=dilation, groups=hidden,
+                      bias=False),
+            nn.BatchNorm2d(hidden), nn.ReLU(inplace=True),
+            nn.Conv2d(hidden, channels, 1, bias=False), nn.BatchNorm2d(channels))
+        nn.init.zeros_(self.body[-1].weight)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """x (B, C, h, w) -> (B, C, h, w)."""
+        return x + self.body(x)
+
+
+CONTEXT_DILATIONS = (1, 2, 4, 8)
+"""Dilations of the segmentation context blocks at stride 8, in turn (px at stride 8)."""
+
+
 class CrossTaskMixer(nn.Module):
     """Cross-Task Mixer Module (CTMM), equations (1)-(5) of the paper.
 
@@ -208,6 +237,11 @@ class SemFeatNet(nn.Module):
         #                   1; the first sees the F2 skip)
         'seg_stride': 4,  # px, stride of the segmentation logits: 4 (v0-v3) or 2 (v5, shipped:
         #                   a residual refinement with the F1 skip over the stride-4 logits)
+        'seg_context_blocks': 0,  # inverted-residual blocks on the segmentation branch's
+        #                           stride-8 features after its CTMM, dilations 1, 2, 4, 8 in
+        #                           turn (0: none, weights v0-v6)
+        'seg_blocks': 0,  # inverted-residual blocks after the stride-4 segmentation decoder
+        'seg_block_expansion': 3,  # hidden width / input width of those blocks
         'num_classes': 19,  # C, semantic classes (config/labels.yaml)
     }
 
@@ -224,12 +258,12 @@ class SemFeatNet(nn.Module):
                 f'encoder_channels needs >= 3 positive widths (stride 8 must exist), got {enc}')
         for key in ('decoder_channels', 'task_dim', 'mixer_dim', 'kp_fine_channels',
                     'descriptor_dim', 'seg_channels', 'num_classes', 'in_channels',
-                    'kp_head_layers', 'seg_layers'):
+                    'kp_head_layers', 'seg_layers', 'seg_block_expansion'):
             if int(conf[key]) <= 0:
                 raise ModelConfigError(f'{key} must be a positive integer, got {conf[key]!r}')
-        if int(conf['kp_pixel_channels']) < 0:
-            raise ModelConfigError(
-                f'kp_pixel_channels must be >= 0, got {conf["kp_pixel_channels"]!r}')
+        for key in ('kp_pixel_channels', 'seg_context_blocks', 'seg_blocks'):
+            if int(conf[key]) < 0:
+                raise ModelConfigError(f'{key} must be >= 0, got {conf[key]!r}')
         if int(conf['seg_stride']) not in (2, SEG_STRIDE):
             raise ModelConfigError(f'seg_stride must be 2 or 4, got {conf["seg_stride"]!r}')
         width = int(conf['decoder_channels'])
@@ -263,6 +297,13 @@ class SemFeatNet(nn.Module):
         self.desc_decoder = conv_bn_relu(width, width)
         self.desc_head = nn.Conv2d(width, int(conf['descriptor_dim']), 1)
         seg_c = int(conf['seg_channels'])
+        expansion = int(conf['seg_block_expansion'])
+        # residual blocks start as the identity; empty by default, so older weights keep their keys
+        self.seg_context = nn.Sequential(*[
+            InvertedResidual(width, expansion, CONTEXT_DILATIONS[i % len(CONTEXT_DILATIONS)])
+            for i in range(int(conf['seg_context_blocks']))])
+        self.seg_blocks = nn.Sequential(
+            *[InvertedResidual(seg_c, expansion) for _ in range(int(conf['seg_blocks']))])
         self.seg_reduce = conv_bn_relu(width, seg_c, kernel=1)
         self.seg_decoder = separable_bn_relu(seg_c + enc[1], seg_c)
         # the layers after the first: empty with seg_layers 1, so v0-v3 weights keep their keys
@@ -321,10 +362,11 @@ class SemFeatNet(nn.Module):
         desc = self.desc_head(self.desc_decoder(mixed['desc']))
         desc = F.normalize(desc, p=2, dim=1, eps=1e-8)
 
-        seg = self.seg_reduce(mixed['seg'])
+        seg = self.seg_reduce(self.seg_context(mixed['seg']))
         skip = feats[1]
         seg = F.interpolate(seg, size=skip.shape[-2:], mode='bilinear', align_corners=False)
         seg_feat = self.seg_refine(self.seg_decoder(torch.cat([seg, skip], dim=1)))
+        seg_feat = self.seg_blocks(seg_feat)
         seg = self.seg_head(seg_feat)  # (B, C, H/4, W/4)
         if self.seg_fine is not None:
             f1 = feats[0]  # (B, c_1, H/2, W/2)
