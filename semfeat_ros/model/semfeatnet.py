@@ -40,6 +40,11 @@ Design decisions the paper leaves open (documented here and in MODEL_CARD.md):
   F1 (stride 2) through one separable layer and adds a 1x1 correction to the bilinearly upsampled
   stride-4 logits. The correction starts at zero, so a network fine-tuned from stride-4 weights
   starts from their exact output.
+* Segmentation context (``seg_context_blocks``, ``seg_blocks``; 0 by default). MobileNetV2
+  inverted-residual blocks on the segmentation branch only: dilated ones (1, 2, 4, 8 in turn)
+  on its stride-8 features after the CTMM, plain ones after its stride-4 decoder. Each block's
+  last BatchNorm scale starts at zero, so blocks inserted into trained weights leave their
+  output unchanged until they are trained (the same rule as the stride-2 refinement).
 * Descriptors are produced at stride 8 and sampled bilinearly at keypoints (then re-normalised),
   as in SuperPoint; the loss is applied to the sampled descriptors.
 """
