@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+import sys
 
 import numpy as np
 import pytest
@@ -22,6 +23,9 @@ from semfeat_ros.model.extractor import (
     simple_nms,
 )
 from semfeat_ros.model.semfeatnet import SemFeatNet
+
+sys.path.insert(0, str(Path(__file__).parent / 'helpers'))
+from nets import perturb_batchnorm  # noqa: E402
 
 NAMES = ['road', 'sidewalk', 'parking_line', 'lane_divider', 'road_marking', 'curb', 'wall',
          'pillar', 'ceiling', 'light', 'sign', 'pole', 'railing', 'barrier', 'building',
@@ -289,9 +293,7 @@ def test_weights_of_the_v1_layout_still_load(tmp_path: Path) -> None:
 def test_onnxruntime_backend_agrees_with_torch(extra: dict) -> None:
     torch.manual_seed(0)
     net = SemFeatNet({**SMALL, **extra}).eval()
-    for name, m in net.named_modules():  # residual blocks away from their identity start
-        if name.startswith(('seg_context', 'seg_blocks')) and isinstance(m, torch.nn.BatchNorm2d):
-            torch.nn.init.uniform_(m.weight, 0.5, 1.5)
+    perturb_batchnorm(net, ('seg_context', 'seg_blocks'))  # blocks away from the identity
     image = np.random.default_rng(5).integers(0, 255, (300, 400, 3), dtype=np.uint8)
     eager = _extractor(net, backend='torch', detection_threshold=0.0, max_keypoints=200)
     ort = _extractor(net, backend='onnxruntime', detection_threshold=0.0, max_keypoints=200)

@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
+import sys
 
 import numpy as np
 import pytest
@@ -25,6 +27,9 @@ from semfeat_ros.model.semfeatnet import (
     fuse_batchnorm,
     normalize_image,
 )
+
+sys.path.insert(0, str(Path(__file__).parent / 'helpers'))
+from nets import perturb_batchnorm  # noqa: E402
 
 
 def _reference_ctmm(z: np.ndarray, tasks: np.ndarray, wq: np.ndarray, wk: np.ndarray,
@@ -119,11 +124,7 @@ def test_default_model_size_and_bn_fusion() -> None:
     net = SemFeatNet()
     n = count_parameters(net)
     assert 200_000 < n < 2_000_000  # a few MB of fp32 weights
-    for m in net.modules():  # non-trivial BN statistics, so folding is really exercised
-        if isinstance(m, torch.nn.BatchNorm2d):
-            m.running_mean.uniform_(-0.5, 0.5)
-            m.running_var.uniform_(0.5, 2.0)
-            m.weight.data.uniform_(0.5, 1.5)
+    perturb_batchnorm(net)  # non-trivial BN statistics, so folding is really exercised
     net.eval()
     x = torch.randn(1, 3, 64, 96)
     with torch.inference_mode():
@@ -177,11 +178,7 @@ def test_seg_context_blocks_start_as_the_identity_and_fold() -> None:
         out = ctx(x)
         for k in ('heatmap', 'descriptors', 'segmentation_logits'):  # new blocks: identity
             torch.testing.assert_close(out[k], ref[k])
-        for name, m in ctx.named_modules():  # trained blocks: BN folding must stay exact
-            if name.startswith(('seg_context', 'seg_blocks')) and \
-                    isinstance(m, torch.nn.BatchNorm2d):
-                m.weight.data.uniform_(0.5, 1.5)
-                m.running_var.uniform_(0.5, 2.0)
+        perturb_batchnorm(ctx, ('seg_context', 'seg_blocks'))  # trained blocks: exact folding
         moved = ctx(x)['segmentation_logits']
         assert not torch.allclose(moved, ref['segmentation_logits'])
         torch.testing.assert_close(ctx(x)['heatmap'], ref['heatmap'])  # only the seg branch
