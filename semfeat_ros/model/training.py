@@ -613,6 +613,11 @@ def model_card(model: SemFeatNet, meta: dict[str, Any], conf: dict[str, Any],
     pixels = f', grey 8x8 input cells via {pix}-channel 1x1 layers' if pix else ''
     seg_row = ('stride 4 logits' if net.get('seg_stride', 4) == 4 else
                'stride 4 logits + a stride-2 residual refinement (F1 skip): stride 2 logits')
+    blocks = [f'{n} {what}' for n, what in (
+        (net.get('seg_context_blocks', 0), 'dilated inverted-residual block(s) at stride 8'),
+        (net.get('seg_blocks', 0), 'inverted-residual block(s) at stride 4')) if n]
+    if blocks:
+        seg_row += f'; context: {" and ".join(blocks)} (segmentation branch only)'
     finetune = ''
     if t.get('init_weights'):
         frozen = (f'; only parameters starting with {t["train_only"]} trained, the rest '
@@ -620,8 +625,8 @@ def model_card(model: SemFeatNet, meta: dict[str, Any], conf: dict[str, Any],
         finetune = (f'\n\nFine-tuned from `{t["init_weights"]}`{frozen}; tensors new in this '
                     f'network ({len(t.get("initialised_tensors", []))}) start from their '
                     'initialisation.')
-    rebuild = (f'train `{t["init_weights"]}` first (the stage its config names as `base`), '
-               'then ' if t.get('init_weights') else '')
+    rebuild = (f'train `{t["init_weights"]}` first (the earlier stages: the comment at the top '
+               f'of `{config_name}`), then ' if t.get('init_weights') else '')
     schedule = (f'first {conf["warmup_fraction"]:.0%} of the steps with the first '
                 f'{conf["freeze_levels"]} encoder block(s) frozen (the paper\'s 20 of 100 '
                 'epochs), then joint fine-tuning with cosine decay'
