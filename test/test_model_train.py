@@ -104,7 +104,7 @@ def test_resume_reproduces_an_uninterrupted_run(shards: Path, tmp_path: Path) ->
 
 def test_fine_tune_trains_only_the_named_parameters(shards: Path, tmp_path: Path) -> None:
     main(_conf(shards, steps=4, val_every=4), tmp_path / 'base', progress=False)
-    net = {**TINY['network'], 'seg_stride': 2}
+    net = {**TINY['network'], 'seg_stride': 2, 'seg_context_blocks': 1}
     conf = _conf(shards, steps=6, val_every=6, network=net, warmup_fraction=0.0,
                  init_weights=str(tmp_path / 'base' / 'semfeat.safetensors'),
                  train_only=['decoder1.seg', 'mixer.seg', 'seg_'],
@@ -113,7 +113,8 @@ def test_fine_tune_trains_only_the_named_parameters(shards: Path, tmp_path: Path
     base, _ = load_weights(tmp_path / 'base')
     tuned, meta = load_weights(tmp_path / 'fine')
     assert meta['training']['initialised_tensors'] and \
-        all(k.startswith('seg_fine') for k in meta['training']['initialised_tensors'])
+        all(k.startswith(('seg_fine', 'seg_context.0.'))
+            for k in meta['training']['initialised_tensors'])
     old, new = base.state_dict(), tuned.state_dict()
     changed = {k for k in old if not torch.equal(old[k], new[k])}
     assert changed and all(k.startswith(('decoder1.seg.', 'mixer.seg.', 'seg_')) for k in changed)
@@ -126,6 +127,8 @@ def test_fine_tune_trains_only_the_named_parameters(shards: Path, tmp_path: Path
     assert b['segmentation_logits'].shape[-2:] == (32, 48)
     card = (tmp_path / 'export' / 'MODEL_CARD.md').read_text()
     assert 'Fine-tuned from' in card and 'stride 2 logits' in card
+    assert '1 dilated inverted-residual block(s) at stride 8' in card
+    assert 'inverted-residual block(s) at stride 4' not in card
     with pytest.raises(ModelConfigError, match='match no parameter'):
         main(_conf(shards, train_only=['seg_nope']), tmp_path / 'o', progress=False)
     with pytest.raises(ModelConfigError, match='other shapes'):
@@ -255,19 +258,26 @@ def test_shipped_config_files_match_the_code() -> None:
     assert set(raw['extractor']) == set(FeatureExtractor.default_conf)  # every key documented
     assert set(raw['network']) == set(SemFeatNet.default_conf)
     conf = load_train_conf(read_config(REPO / 'config' / 'train.yaml'))
-    assert conf['network'] == {**shipped.conf, 'seg_stride': 4}  # stage 1 (v3)
+    v5 = {**shipped.conf, 'seg_context_blocks': 0}
+    assert conf['network'] == {**v5, 'seg_stride': 4}  # stage 1 (v3)
     stage2 = load_train_conf(read_config(REPO / 'config' / 'finetune_seg.yaml'))
-    assert stage2['network'] == shipped.conf  # stage 2: the shipped weights
+    assert stage2['network'] == v5 and v5['seg_stride'] == 2  # stage 2 (v5)
     assert stage2['init_weights'] and stage2['train_only'] and stage2['data'] == conf['data']
-    assert meta['training']['init_weights'] == stage2['init_weights']
+    stage3 = load_train_conf(read_config(REPO / 'config' / 'finetune_seg_ctx_light.yaml'))
+    assert stage3['network'] == shipped.conf  # stage 3: the shipped weights (v8)
+    assert shipped.conf['seg_context_blocks'] == 2 and shipped.conf['seg_blocks'] == 0
+    assert meta['training']['init_weights'] == stage3['init_weights']
+    assert meta['training']['train_only'] == stage2['train_only'] == stage3['train_only']
     probe = load_train_conf(read_config(REPO / 'config' / 'finetune_joint.yaml'))
-    assert probe['network'] == shipped.conf and probe['train_only'] == []  # stage 3 (probe)
+    assert probe['network'] == v5 and probe['train_only'] == []  # a probe over stage 2
     assert probe['loss'] == stage2['loss'] and probe['init_weights'] != stage2['init_weights']
-    ctx = load_train_conf(read_config(REPO / 'config' / 'finetune_seg_ctx.yaml'))  # stage 3
-    assert ctx['network'] == {**shipped.conf, 'seg_context_blocks': 4, 'seg_blocks': 2}
+    ctx = load_train_conf(read_config(REPO / 'config' / 'finetune_seg_ctx.yaml'))  # v7 probe
+    assert ctx['network'] == {**v5, 'seg_context_blocks': 4, 'seg_blocks': 2}
     assert ctx['train_only'] == stage2['train_only'] and ctx['loss'] == stage2['loss']
-    assert ctx['init_weights'] == probe['init_weights']  # stage 2's output
+    assert ctx['init_weights'] == probe['init_weights'] == stage3['init_weights']  # stage 2's
     assert ctx['data']['pair_mix']['photo'] == 0.0 and ctx['data']['crop_size'] == [512, 384]
+    assert {k: v for k, v in stage3.items() if k != 'network'} == \
+        {k: v for k, v in ctx.items() if k != 'network'}  # only the blocks differ
     # paper: AdamW 2e-4 over 100 epochs; the shipped recipe raises it for its CPU step budget
     assert conf['lr'] == 5e-4 and conf['warmup_fraction'] == 0.2
     assert conf['data']['rotation_deg'] == 30.0 and conf['data']['scale_range'] == [0.8, 1.2]
