@@ -7,7 +7,7 @@ from pathlib import Path
 from conftest import REPO
 import numpy as np
 import pytest
-from test_model_data import make_shard
+from test_model_data import CAM, make_shard
 import torch
 import yaml
 
@@ -198,6 +198,15 @@ def test_test_seeds_and_overlap_are_refused(shards: Path, tmp_path: Path) -> Non
     with pytest.raises(DatasetError, match='overlap'):
         main(_conf(shards, val_shards=[str(shards / 'train' / 's1.npz')]), tmp_path / 'o',
              progress=False)
+
+
+def test_held_out_shards_rendered_at_another_size_are_refused(shards: Path,
+                                                              tmp_path: Path) -> None:
+    small = make_shard(tmp_path / 'val' / 's7.npz', n=3, seed=7, cam=CAM.scaled(80, 64))
+    with pytest.raises(DatasetError, match=r'validation shards rendered at 80x64 px, training '
+                                           r'shards at 160x128 px'):
+        main(_conf(shards, val_shards=[str(small)]), tmp_path / 'o', progress=False)
+    assert not (tmp_path / 'o' / 'train_log.csv').exists()
 
 
 def test_lr_schedule_and_freezing() -> None:

@@ -401,6 +401,26 @@ def _save_checkpoint(path: Path, model: SemFeatNet, opt: torch.optim.Optimizer, 
     tmp.replace(path)
 
 
+def check_render_sizes(train: PairGenerator, val: PairGenerator) -> None:
+    """Refuse held-out shards rendered at a size the training shards were not rendered at.
+
+    Both are resized to ``data.frame_long_side``, so a held-out world rendered smaller (e.g. at
+    ``semfeat-sim dataset``'s default 320x256 next to 640x512 training shards) is validated
+    upsampled, blurred with blocky labels, and its metrics compare with nothing. Raises
+    :class:`DatasetError`.
+    """
+    def sizes(gen: PairGenerator) -> set[tuple[int, int]]:
+        return {gen.frames[i].source_size for i in gen.sim_frames} - {None}
+
+    trained, held_out = sizes(train), sizes(val)
+    if trained and held_out - trained:
+        def fmt(s: set[tuple[int, int]]) -> str:
+            return ', '.join(f'{w}x{h}' for w, h in sorted(s))
+        raise DatasetError(
+            f'validation shards rendered at {fmt(held_out - trained)} px, training shards at '
+            f'{fmt(trained)} px: render both with the same `semfeat-sim dataset --size`')
+
+
 def main(conf: dict[str, Any], out: Path, *, resume: bool = False, export: Path | None = None,
          base: Path | None = None, progress: bool = True,
          stop_after: int | None = None, config_name: str = 'config/train.yaml'
@@ -449,6 +469,7 @@ def main(conf: dict[str, Any], out: Path, *, resume: bool = False, export: Path 
     vgen_conf = {**c['data'], 'pair_mix': c['val_mix']}
     vgen = PairGenerator(val_paths, vgen_conf, seed=c['seed'] + 1, use_photos=False,
                          labels=labels)
+    check_render_sizes(gen, vgen)
     vsize = vgen.frames[vgen.sim_frames[0]].size
     stride = 2 ** len(c['network']['encoder_channels'])
     vsize = (vsize[0] // stride * stride, vsize[1] // stride * stride)
