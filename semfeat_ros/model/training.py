@@ -409,16 +409,13 @@ def check_render_sizes(train: PairGenerator, val: PairGenerator) -> None:
     upsampled, blurred with blocky labels, and its metrics compare with nothing. Raises
     :class:`DatasetError`.
     """
-    def sizes(gen: PairGenerator) -> set[tuple[int, int]]:
-        return {gen.frames[i].source_size for i in gen.sim_frames} - {None}
-
-    trained, held_out = sizes(train), sizes(val)
-    if trained and held_out - trained:
-        def fmt(s: set[tuple[int, int]]) -> str:
-            return ', '.join(f'{w}x{h}' for w, h in sorted(s))
+    trained, held_out = ({'x'.join(map(str, g.frames[i].source_size)) for i in g.sim_frames}
+                         for g in (train, val))
+    if trained and held_out - trained:  # no rendered training frames: nothing to compare
         raise DatasetError(
-            f'validation shards rendered at {fmt(held_out - trained)} px, training shards at '
-            f'{fmt(trained)} px: render both with the same `semfeat-sim dataset --size`')
+            f'validation shards rendered at {", ".join(sorted(held_out - trained))} px, training '
+            f'shards at {", ".join(sorted(trained))} px: render both with the same '
+            '`semfeat-sim dataset --size`')
 
 
 def main(conf: dict[str, Any], out: Path, *, resume: bool = False, export: Path | None = None,
