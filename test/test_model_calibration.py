@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_model_data import make_shard
+from test_model_data import CAM, make_shard
 import torch
 
 from semfeat_ros.labels import load_labels
@@ -87,6 +87,12 @@ def test_bad_inputs_are_refused(setup: Path, tmp_path: Path,
     with pytest.raises(DatasetError, match='share worlds'):
         main(_conf(setup, val_shards=[str(setup / 'train' / '*.npz')]), setup / 'trained',
              tmp_path / 'x', progress=False)
+    small = make_shard(tmp_path / 'small' / 's14.npz', n=2, seed=14, cam=CAM.scaled(80, 64))
+    with pytest.raises(DatasetError, match=r'held-out shards rendered at 80x64 px, training '
+                                           r'shards at 160x128 px'):
+        main(_conf(setup, val_shards=[str(small)]), setup / 'trained', tmp_path / 'x',
+             progress=False)
+    assert not (tmp_path / 'x').exists()
     with pytest.raises(DatasetError, match='no training shards'):
         main(_conf(setup, train_shards=[str(tmp_path / 'none' / '*.npz')]), setup / 'trained',
              tmp_path / 'x', progress=False)
