@@ -289,11 +289,13 @@ def test_weights_of_the_v1_layout_still_load(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize('extra', [{}, {'seg_stride': 2, 'seg_context_blocks': 2,
-                                        'seg_blocks': 1}])
+                                        'seg_blocks': 1, 'kp_refine_channels': 4}])
 def test_onnxruntime_backend_agrees_with_torch(extra: dict) -> None:
     torch.manual_seed(0)
     net = SemFeatNet({**SMALL, **extra}).eval()
     perturb_batchnorm(net, ('seg_context', 'seg_blocks'))  # blocks away from the identity
+    if net.kp_refine is not None:
+        torch.nn.init.normal_(net.kp_refine[-1].weight, std=0.2)
     image = np.random.default_rng(5).integers(0, 255, (300, 400, 3), dtype=np.uint8)
     eager = _extractor(net, backend='torch', detection_threshold=0.0, max_keypoints=200)
     ort = _extractor(net, backend='onnxruntime', detection_threshold=0.0, max_keypoints=200)

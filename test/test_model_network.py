@@ -336,6 +336,33 @@ def test_pixel_branch_feeds_the_keypoint_head() -> None:
         SemFeatNet({'kp_head_layers': 0})
 
 
+def test_kp_refine_starts_as_the_identity_and_corrects_single_pixels() -> None:
+    small = {'encoder_channels': [8, 16, 24], 'decoder_channels': 16, 'descriptor_dim': 16,
+             'seg_channels': 8, 'task_dim': 8, 'mixer_dim': 8}
+    torch.manual_seed(0)
+    plain = SemFeatNet(small).eval()
+    assert plain.kp_refine is None
+    ref = SemFeatNet({**small, 'kp_refine_channels': 4}).eval()
+    extra = set(ref.state_dict()) - set(plain.state_dict())
+    assert extra and all(k.startswith('kp_refine.') for k in extra)
+    ref.load_state_dict(plain.state_dict(), strict=False)
+    x = torch.randn(1, 3, 32, 64)
+    with torch.inference_mode():
+        base = plain(x)
+        out = ref(x)
+        for k in ('keypoint_logits', 'heatmap', 'descriptors', 'segmentation_logits'):
+            torch.testing.assert_close(out[k], base[k])  # inserted: the same network
+        torch.nn.init.normal_(ref.kp_refine[-1].weight, std=0.5)  # trained: per-pixel changes
+        moved = ref(x)
+        delta = moved['keypoint_logits'] - base['keypoint_logits']
+        cells = F.pixel_unshuffle(delta, 8)  # (1, 64, h, w): not constant within an 8x8 cell
+        assert (cells.std(dim=1) > 1e-3).all()
+        torch.testing.assert_close(moved['descriptors'], base['descriptors'])
+        torch.testing.assert_close(moved['segmentation_logits'], base['segmentation_logits'])
+    with pytest.raises(ModelConfigError, match='kp_refine_channels'):
+        SemFeatNet({**small, 'kp_refine_channels': -1})
+
+
 def test_sample_descriptors_cell_centres() -> None:
     desc = F.normalize(torch.randn(1, 4, 2, 3), dim=1)
     # cell (i, j) is centred at input px (8j + 3.5, 8i + 3.5)

@@ -136,6 +136,30 @@ def test_fine_tune_trains_only_the_named_parameters(shards: Path, tmp_path: Path
                   tmp_path / 'base' / 'semfeat.safetensors')
 
 
+def test_keypoint_fine_tune_inserts_the_refinement_and_keeps_the_rest(shards: Path,
+                                                                     tmp_path: Path) -> None:
+    main(_conf(shards, steps=4, val_every=4), tmp_path / 'base', progress=False)
+    net = {**TINY['network'], 'kp_refine_channels': 2}
+    conf = _conf(shards, steps=6, val_every=6, network=net, warmup_fraction=0.0, lr=1e-2,
+                 init_weights=str(tmp_path / 'base' / 'semfeat.safetensors'),
+                 train_only=['decoder1.kp', 'mixer.kp', 'kp_'],
+                 loss={'w_desc': 0.0, 'w_seg': 0.0, 'kp_cell_weight': 1.0})
+    main(conf, tmp_path / 'fine', export=tmp_path / 'export', progress=False)
+    base, _ = load_weights(tmp_path / 'base')
+    tuned, meta = load_weights(tmp_path / 'fine')
+    assert meta['training']['initialised_tensors'] and \
+        all(k.startswith('kp_refine.') for k in meta['training']['initialised_tensors'])
+    assert tuned.kp_refine[-1].weight.abs().sum() > 0  # the zero-initialised layer learned
+    x = torch.randn(1, 3, 64, 96)
+    with torch.inference_mode():
+        a, b = base.eval()(x), tuned.eval()(x)
+    for k in ('descriptors', 'segmentation_logits'):  # exactly as before
+        torch.testing.assert_close(a[k], b[k], atol=0, rtol=0)
+    assert not torch.equal(a['heatmap'], b['heatmap'])
+    card = (tmp_path / 'export' / 'MODEL_CARD.md').read_text()
+    assert 'full-resolution correction (3 x 3x3 conv, 2 channels' in card
+
+
 def test_config_base_and_network_overrides(tmp_path: Path) -> None:
     (tmp_path / 'model.yaml').write_text(yaml.safe_dump(
         {'network': {'seg_channels': 8, 'seg_stride': 2}}))

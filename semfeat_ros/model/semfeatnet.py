@@ -236,6 +236,9 @@ class SemFeatNet(nn.Module):
         #                           channels) through two 1x1 conv layers of this width also
         #                           feed the kp head (XFeat-style); 0: off (weights v0/v1)
         'kp_head_layers': 2,  # hidden 1x1 conv + BN + ReLU layers of the kp head (v0/v1: 1)
+        'kp_refine_channels': 0,  # > 0: three 3x3 conv layers of this width at full input
+        #                           resolution on the grey image and the cell logits add a
+        #                           per-pixel correction to the keypoint logits (0: off, v0-v8)
         'descriptor_dim': 64,  # D, length of the L2-normalised descriptors
         'seg_channels': 32,  # width of the segmentation decoder at stride 4
         'seg_layers': 1,  # separable 3x3 layers of the segmentation decoder at stride 4 (v0-v3:
@@ -266,7 +269,8 @@ class SemFeatNet(nn.Module):
                     'kp_head_layers', 'seg_layers', 'seg_block_expansion'):
             if int(conf[key]) <= 0:
                 raise ModelConfigError(f'{key} must be a positive integer, got {conf[key]!r}')
-        for key in ('kp_pixel_channels', 'seg_context_blocks', 'seg_blocks'):
+        for key in ('kp_pixel_channels', 'kp_refine_channels', 'seg_context_blocks',
+                    'seg_blocks'):
             if int(conf[key]) < 0:
                 raise ModelConfigError(f'{key} must be >= 0, got {conf[key]!r}')
         if int(conf['seg_stride']) not in (2, SEG_STRIDE):
@@ -299,6 +303,16 @@ class SemFeatNet(nn.Module):
         hidden += [conv_bn_relu(width, width, kernel=1)
                    for _ in range(int(conf['kp_head_layers']) - 1)]
         self.kp_head = nn.Sequential(*hidden, nn.Conv2d(width, KP_STRIDE * KP_STRIDE, 1))
+        ref = int(conf['kp_refine_channels'])
+        # full-resolution correction of the depth-to-space logits; its last layer starts at zero,
+        # so inserting it into trained weights leaves their heatmap unchanged
+        self.kp_refine = nn.Sequential(
+            nn.Conv2d(2, ref, 3, padding=1), nn.ReLU(inplace=True),
+            nn.Conv2d(ref, ref, 3, padding=1), nn.ReLU(inplace=True),
+            nn.Conv2d(ref, 1, 3, padding=1)) if ref > 0 else None
+        if self.kp_refine is not None:
+            nn.init.zeros_(self.kp_refine[-1].weight)
+            nn.init.zeros_(self.kp_refine[-1].bias)
         self.desc_decoder = conv_bn_relu(width, width)
         self.desc_head = nn.Conv2d(width, int(conf['descriptor_dim']), 1)
         seg_c = int(conf['seg_channels'])
@@ -331,7 +345,8 @@ class SemFeatNet(nn.Module):
         Returns:
             dict with
             ``keypoint_logits`` (B, 1, H, W): pre-sigmoid heatmap logits (depth-to-space of the
-                (B, 64, H/8, W/8) cell logits);
+                (B, 64, H/8, W/8) cell logits, plus the full-resolution correction when
+                ``kp_refine_channels`` > 0);
             ``heatmap`` (B, H, W): H_kp = sigmoid(keypoint_logits) in [0, 1];
             ``descriptors`` (B, D, H/8, W/8): unit L2 norm along dim 1;
             ``segmentation_logits`` (B, C, H/s, W/s): class logits (softmax -> probabilities),
@@ -358,11 +373,14 @@ class SemFeatNet(nn.Module):
 
         fine = self.kp_fine(feats[0])  # (B, kp_fine_channels, H/8, W/8)
         kp = [self.kp_decoder(mixed['kp']), fine]
+        grey = image.mean(dim=1, keepdim=True)  # (B, 1, H, W)
         if self.kp_pixels is not None:
-            grey = F.pixel_unshuffle(image.mean(dim=1, keepdim=True), KP_STRIDE)  # (B,64,h,w)
-            kp.append(self.kp_pixels(grey))  # (B, kp_pixel_channels, H/8, W/8)
+            cells = F.pixel_unshuffle(grey, KP_STRIDE)  # (B, 64, H/8, W/8)
+            kp.append(self.kp_pixels(cells))  # (B, kp_pixel_channels, H/8, W/8)
         cells = self.kp_head(torch.cat(kp, dim=1))  # (B, 64, H/8, W/8)
         logits = F.pixel_shuffle(cells, KP_STRIDE)  # (B, 1, H, W)
+        if self.kp_refine is not None:
+            logits = logits + self.kp_refine(torch.cat([grey, logits], dim=1))  # (B, 1, H, W)
 
         desc = self.desc_head(self.desc_decoder(mixed['desc']))
         desc = F.normalize(desc, p=2, dim=1, eps=1e-8)

@@ -651,8 +651,11 @@ def model_card(model: SemFeatNet, meta: dict[str, Any], conf: dict[str, Any],
                 if conf['warmup_fraction'] > 0 else 'cosine decay after the ramp')
     lw = conf['loss'].get('seg_lovasz_weight', 0.0)
     lovasz = f'; + Lovasz-softmax (weight {lw}) on the same grid' if lw else ''
+    ref = net.get('kp_refine_channels', 0)
+    refine = (f' + a full-resolution correction (3 x 3x3 conv, {ref} channels, on the grey '
+              'input and those logits)' if ref else '')
     kp_row = (f'64 cell logits at stride 8 (inputs: kp decoder, stride-2 features{pixels}) '
-              '-> depth-to-space -> sigmoid heatmap')
+              f'-> depth-to-space{refine} -> sigmoid heatmap')
     return f"""# SemFeatNet weights (semfeat_ros)
 
 Multi-task network of *Semantic Aware Feature Extraction for Enhanced 3D Reconstruction*:
