@@ -291,16 +291,23 @@ def test_shipped_config_files_match_the_code() -> None:
     assert set(raw['extractor']) == set(FeatureExtractor.default_conf)  # every key documented
     assert set(raw['network']) == set(SemFeatNet.default_conf)
     conf = load_train_conf(read_config(REPO / 'config' / 'train.yaml'))
-    v5 = {**shipped.conf, 'seg_context_blocks': 0}
+    v8 = {**shipped.conf, 'kp_refine_channels': 0}
+    v5 = {**v8, 'seg_context_blocks': 0}
     assert conf['network'] == {**v5, 'seg_stride': 4}  # stage 1 (v3)
     stage2 = load_train_conf(read_config(REPO / 'config' / 'finetune_seg.yaml'))
     assert stage2['network'] == v5 and v5['seg_stride'] == 2  # stage 2 (v5)
     assert stage2['init_weights'] and stage2['train_only'] and stage2['data'] == conf['data']
     stage3 = load_train_conf(read_config(REPO / 'config' / 'finetune_seg_ctx_light.yaml'))
-    assert stage3['network'] == shipped.conf  # stage 3: the shipped weights (v8)
+    assert stage3['network'] == v8  # stage 3 (v8)
     assert shipped.conf['seg_context_blocks'] == 2 and shipped.conf['seg_blocks'] == 0
-    assert meta['training']['init_weights'] == stage3['init_weights']
-    assert meta['training']['train_only'] == stage2['train_only'] == stage3['train_only']
+    assert stage2['train_only'] == stage3['train_only']
+    stage4 = load_train_conf(read_config(REPO / 'config' / 'finetune_kp.yaml'))
+    assert stage4['network'] == shipped.conf  # stage 4: the shipped weights (v9)
+    assert shipped.conf['kp_refine_channels'] == 8
+    assert meta['training']['init_weights'] == stage4['init_weights'] == \
+        stage3['init_weights'].replace('train_v5', 'train_v8')
+    assert meta['training']['train_only'] == stage4['train_only']
+    assert stage4['data'] == conf['data']  # stage 1's views and photos
     probe = load_train_conf(read_config(REPO / 'config' / 'finetune_joint.yaml'))
     assert probe['network'] == v5 and probe['train_only'] == []  # a probe over stage 2
     assert probe['loss'] == stage2['loss'] and probe['init_weights'] != stage2['init_weights']

@@ -33,7 +33,8 @@ SHIPPED_WEIGHTS = WEIGHTS_DIR / f'{WEIGHTS_NAME}.safetensors'
 
 TRAIN_COMMAND = ('semfeat-train --config config/train.yaml --out out/train_v3, then '
                  'semfeat-train --config config/finetune_seg.yaml --out out/train_v5, then '
-                 'semfeat-train --config config/finetune_seg_ctx_light.yaml --out out/train_v8 '
+                 'semfeat-train --config config/finetune_seg_ctx_light.yaml --out out/train_v8, '
+                 'then semfeat-train --config config/finetune_kp.yaml --out out/train_v9 '
                  '--export semfeat_ros/weights')
 """The command that (re)creates :data:`SHIPPED_WEIGHTS` (see MODEL_CARD.md)."""
 
@@ -51,7 +52,8 @@ def resolve_weights_path(path: str | Path | None) -> Path:
         if not p.is_file():
             raise WeightsNotFoundError(
                 f'no trained weights shipped at {p}. The network must be trained first: '
-                f'run `{TRAIN_COMMAND}` (about 3 h on 2 AVX-512 CPU cores, 4 h on AVX2 ones), '
+                f'run `{TRAIN_COMMAND}` (about 3 h 45 min on 2 AVX-512 CPU cores, 5 h on '
+                f'AVX2 ones), '
                 f'or pass weights=PATH to a trained .safetensors file')
         return p
     p = Path(path)
