@@ -22,7 +22,6 @@ from dataclasses import dataclass
 from pathlib import Path
 import shutil
 from typing import Any
-import zipfile
 
 import numpy as np
 import torch
@@ -34,7 +33,7 @@ from semfeat_ros.model.errors import DatasetError, ModelConfigError, WeightsForm
 from semfeat_ros.model.extractor import FeatureExtractor
 from semfeat_ros.model.metrics import confusion_matrix, mean_iou, subset_iou
 from semfeat_ros.model.semfeatnet import SemFeatNet
-from semfeat_ros.model.training import _check_seeds, expand_shards
+from semfeat_ros.model.training import _check_seeds, check_render_sizes, expand_shards
 from semfeat_ros.model.weights_io import load_weights, resolve_weights_path, save_weights
 
 default_conf: dict[str, Any] = {
@@ -101,35 +100,6 @@ def class_weights_of(config: dict[str, Any]) -> np.ndarray:
     return w
 
 
-def render_size(path: Path) -> str:
-    """``'WxH'`` px of a shard's frames, from the header of its ``rgb`` array (no pixels read)."""
-    try:
-        with zipfile.ZipFile(path) as zf, zf.open('rgb.npy') as f:
-            version = np.lib.format.read_magic(f)
-            read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
-                    else np.lib.format.read_array_header_2_0)
-            shape = read(f)[0]
-    except (OSError, KeyError, ValueError, zipfile.BadZipFile) as exc:
-        raise DatasetError(f'shard {path}: cannot read its image size ({exc})') from exc
-    if len(shape) != 4:
-        raise DatasetError(f'shard {path}: rgb is {shape}, expected (N, H, W, 3)')
-    return f'{shape[2]}x{shape[1]}'
-
-
-def check_render_sizes(train: Sequence[Path], val: Sequence[Path]) -> None:
-    """Refuse held-out shards rendered at a size no training shard was rendered at: tau is
-    fitted on the training worlds' frames, and a held-out world rendered smaller (e.g. at
-    ``semfeat-sim dataset``'s default 320x256) is scored upsampled, a number that compares with
-    nothing. Raises :class:`DatasetError`."""
-    trained = {render_size(p) for p in train}
-    held_out = {render_size(p) for p in val}
-    if held_out - trained:
-        raise DatasetError(
-            f'held-out shards rendered at {", ".join(sorted(held_out - trained))} px, training '
-            f'shards at {", ".join(sorted(trained))} px: render both with the same '
-            '`semfeat-sim dataset --size`')
-
-
 def _frames(paths: Sequence[Path], per_shard: int):  # noqa: ANN202 - generator of arrays
     for p in paths:
         with np.load(p, allow_pickle=False) as npz:
@@ -188,7 +158,7 @@ def main(conf: dict[str, Any] | None, weights: str | Path | None, out: Path,
     if set(train_seeds) & set(val_seeds):
         raise DatasetError(f'held-out shards share worlds with the training shards: '
                            f'{sorted(set(train_seeds) & set(val_seeds))}')
-    check_render_sizes(train, val)
+    check_render_sizes(train, val, 'held-out')
     torch.set_num_threads(int(c['num_threads']))
     ex = FeatureExtractor(raw, {'num_threads': int(c['num_threads'])},
                           class_names=config['class_names'])

@@ -146,8 +146,6 @@ class Frame:
         score: optional (H, W) float32 precomputed corner score (photos: adapted).
         candidates: cache of :func:`frame_candidates` (K, 2) float px.
         name: source description (shard path + index, or photo path).
-        source_size: (W, H) px of a rendered frame as its shard holds it, before the resize to
-            ``frame_long_side``; None for photos.
     """
 
     rgb: np.ndarray
@@ -160,7 +158,6 @@ class Frame:
     score: np.ndarray | None = None
     candidates: np.ndarray | None = None
     name: str = ''
-    source_size: tuple[int, int] | None = None
 
     @property
     def is_photo(self) -> bool:
@@ -208,7 +205,7 @@ def load_shard_frames(path: str | Path, long_side: int
         static = (label != IGNORE_LABEL) & ~np.isin(inst, moving)
         frames.append(Frame(rgb=rgb, label=label, depth=depth.astype(np.float16), instance=inst,
                             T_map_cam=data['T_map_cam'][i].astype(np.float64), camera=cam_s,
-                            static=static, name=f'{path}#{i}', source_size=(w, h)))
+                            static=static, name=f'{path}#{i}'))
     pairs = [(int(a), int(b), float(o)) for (a, b), o in zip(data['pairs'], data['pair_overlap'])]
     return frames, pairs
 

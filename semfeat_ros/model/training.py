@@ -28,6 +28,7 @@ from pathlib import Path
 import shutil
 import time
 from typing import Any
+import zipfile
 
 import cv2
 import numpy as np
@@ -156,6 +157,38 @@ def _check_seeds(paths: list[Path], exclude: list[int], what: str) -> list[int]:
     if bad:
         raise DatasetError(f'{what} shards contain excluded (test) seeds {bad}')
     return seeds
+
+
+def render_size(path: Path) -> str:
+    """``'WxH'`` px of a shard's frames, from the header of its ``rgb`` array (no pixels read)."""
+    try:
+        with zipfile.ZipFile(path) as zf, zf.open('rgb.npy') as f:
+            version = np.lib.format.read_magic(f)
+            read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                    else np.lib.format.read_array_header_2_0)
+            shape = read(f)[0]
+    except (OSError, KeyError, ValueError, zipfile.BadZipFile) as exc:
+        raise DatasetError(f'shard {path}: cannot read its image size ({exc})') from exc
+    if len(shape) != 4:
+        raise DatasetError(f'shard {path}: rgb is {shape}, expected (N, H, W, 3)')
+    return f'{shape[2]}x{shape[1]}'
+
+
+def check_render_sizes(train: list[Path], held_out: list[Path], what: str) -> None:
+    """Refuse ``what`` (held-out) shards rendered at a size no training shard was rendered at.
+
+    Frames are resized to the network scale, so a held-out world rendered smaller (e.g. at
+    ``semfeat-sim dataset``'s default 320x256 next to 640x512 training shards) is scored
+    upsampled, blurred with blocky labels, and its metrics compare with nothing. Raises
+    :class:`DatasetError`.
+    """
+    trained = {render_size(p) for p in train}
+    other = {render_size(p) for p in held_out}
+    if trained and other - trained:  # no rendered training frames: nothing to compare
+        raise DatasetError(
+            f'{what} shards rendered at {", ".join(sorted(other - trained))} px, training '
+            f'shards at {", ".join(sorted(trained))} px: render both with the same '
+            '`semfeat-sim dataset --size`')
 
 
 class _Samples(Dataset):
@@ -401,23 +434,6 @@ def _save_checkpoint(path: Path, model: SemFeatNet, opt: torch.optim.Optimizer, 
     tmp.replace(path)
 
 
-def check_render_sizes(train: PairGenerator, val: PairGenerator) -> None:
-    """Refuse held-out shards rendered at a size the training shards were not rendered at.
-
-    Both are resized to ``data.frame_long_side``, so a held-out world rendered smaller (e.g. at
-    ``semfeat-sim dataset``'s default 320x256 next to 640x512 training shards) is validated
-    upsampled, blurred with blocky labels, and its metrics compare with nothing. Raises
-    :class:`DatasetError`.
-    """
-    trained, held_out = ({'x'.join(map(str, g.frames[i].source_size)) for i in g.sim_frames}
-                         for g in (train, val))
-    if trained and held_out - trained:  # no rendered training frames: nothing to compare
-        raise DatasetError(
-            f'validation shards rendered at {", ".join(sorted(held_out - trained))} px, training '
-            f'shards at {", ".join(sorted(trained))} px: render both with the same '
-            '`semfeat-sim dataset --size`')
-
-
 def main(conf: dict[str, Any], out: Path, *, resume: bool = False, export: Path | None = None,
          base: Path | None = None, progress: bool = True,
          stop_after: int | None = None, config_name: str = 'config/train.yaml'
@@ -461,12 +477,12 @@ def main(conf: dict[str, Any], out: Path, *, resume: bool = False, export: Path 
     if set(train_seeds) & set(val_seeds):
         raise DatasetError(f'training and validation shards share world seeds '
                            f'{sorted(set(train_seeds) & set(val_seeds))}')
+    check_render_sizes(train_paths, val_paths, 'validation')
     gen = PairGenerator(train_paths, c['data'], seed=c['seed'], use_photos=True, labels=labels)
     val_size = gen.frames[gen.sim_frames[0]].size if gen.sim_frames else None
     vgen_conf = {**c['data'], 'pair_mix': c['val_mix']}
     vgen = PairGenerator(val_paths, vgen_conf, seed=c['seed'] + 1, use_photos=False,
                          labels=labels)
-    check_render_sizes(gen, vgen)
     vsize = vgen.frames[vgen.sim_frames[0]].size
     stride = 2 ** len(c['network']['encoder_channels'])
     vsize = (vsize[0] // stride * stride, vsize[1] // stride * stride)
