@@ -24,12 +24,13 @@ from bagcraft import craft  # noqa: E402
 BAG = REPO / 'bags' / 'garage_ramp_seed0'
 pytestmark = pytest.mark.slow
 
-# The quality run replays at half speed: on 2 cores, five processes (three nodes, player,
+# The quality run replays slower than real time: on 2 cores, five processes (three nodes, player,
 # recorder) and the fp32 network cannot hold the bag's 10 Hz, and at 1x the number of frames the
-# nodes drop (6-44 of 198 over session 4's runs) decides how good the map is. At 0.5x every
-# frame is processed and the live result matches semfeat-map's. Dropping under overload is
-# tested at 2x below.
-QUALITY_RATE = 0.5
+# nodes drop (6-44 of 198 over session 4's runs) decides how good the map is. At 0.3x every
+# frame is processed and the live result matches semfeat-map's. 0.5x was enough until session
+# 18's machine, 1.2-2.2x slower than session 17's, where feature_node dropped 17 of 198 frames
+# at 0.5x (it keeps 82-111 at 1x there). Dropping under overload is tested at 2x below.
+QUALITY_RATE = 0.3
 # Bounds against what the live pipeline measured at 0.5x on the shipped weights (RESULTS.md):
 # /semfeat/odometry (per frame, causal) 0.39 m ATE (semfeat-map's online trajectory: 0.36 m);
 # the final /semfeat/path (smoothed keyframes) 0.10 m (semfeat-map: 0.13 m); 160 points on
@@ -80,7 +81,7 @@ def test_clean_replay_diagnostics(live: dict) -> None:
     assert waiting <= 3
     # every frame accounted for (a snapshot may miss the one in inference and the one waiting)
     assert received - 2 <= processed + dropped + waiting <= received
-    assert dropped <= 0.05 * received  # at half speed the pipeline keeps up
+    assert dropped <= 0.05 * received  # at QUALITY_RATE the pipeline keeps up
     assert all(code == 0 for code in live['run']['exit_codes'].values())
     counts = live['outputs']['counts']
     assert counts.get('/semfeat/tracks', 0) >= processed - 2  # every processed frame tracked
