@@ -8,7 +8,7 @@ repo=$(cd "$(dirname "$0")/.." && pwd)
 venv=${VENV:-$repo/.venv}
 py=${PYTHON:-python3}
 stamp=$venv/.semfeat_stamp
-want=$(cat "$repo/requirements.txt" "$repo/setup.py" "$repo/setup.cfg" | sha256sum | cut -c1-16)
+want=$(cat "$repo/requirements.txt" "$repo/requirements-nodeps.txt" "$repo/setup.py" "$repo/setup.cfg" | sha256sum | cut -c1-16)
 
 if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ] && [ -x "$venv/bin/python" ]; then
   echo "$venv/bin"
@@ -22,6 +22,10 @@ echo "setting up $venv (first run takes a minute or two) ..." >&2
 # spec would download CUDA builds.
 "$venv/bin/python" -m pip install --quiet --disable-pip-version-check \
   -r "$repo/requirements.txt" 2> >(grep -v "^WARNING: Location" >&2)
+# Their declared dependencies are traps (a CUDA torchvision, opencv-python over the headless
+# build, gdown, poselib): what they need is in requirements.txt.
+"$venv/bin/python" -m pip install --quiet --disable-pip-version-check --no-deps \
+  -r "$repo/requirements-nodeps.txt" 2> >(grep -v "^WARNING: Location" >&2)
 "$venv/bin/python" -m pip install --quiet --disable-pip-version-check --no-deps \
   --no-build-isolation -e "$repo" 2> >(grep -v "^WARNING: Location" >&2)
 # The venv holds package.xml files of the ROS wheels: keep colcon from crawling into it.
