@@ -1,6 +1,8 @@
 """Mapping core without the smoother: geometry, floors, files, alignment, config, inputs."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -26,7 +28,9 @@ from semfeat_ros.mapping import (
 )
 from semfeat_ros.mapping import geometry as geo
 from semfeat_ros.mapping.cloud import VoxelMap
+from semfeat_ros.mapping.errors import MapWriteError
 from semfeat_ros.mapping.factors import ground_error
+from semfeat_ros.mapping.io import save_map
 
 
 def random_pose(rng: np.random.Generator, scale: float = 1.0) -> np.ndarray:
@@ -475,3 +479,87 @@ def test_frame_feeder_waits_for_the_odometry_after_a_frame() -> None:
     feeder.add_odometry(100 * MS, move.copy())
     feeder.push(_frame(300 * MS), 'f')
     assert feeder.release(300 * MS) == [] and len(feeder.pending) == 1
+
+
+def test_map_writers_refuse_symlinks(tmp_path) -> None:
+    out, outside = tmp_path / 'out', tmp_path / 'outside'
+    out.mkdir()
+    outside.mkdir()
+    victim = outside / 'victim.txt'
+    victim.write_text('keep me')
+    (out / 'cloud.ply').symlink_to(victim)
+    (out / 'trajectory.tum').symlink_to(outside / 'created.tum')  # dangling
+    with pytest.raises(MapWriteError, match='symlink'):
+        write_ply(out / 'cloud.ply', make_cloud())
+    with pytest.raises(MapWriteError, match='symlink'):
+        write_tum(out / 'trajectory.tum', np.zeros(1, np.int64), np.eye(4)[None])
+    with pytest.raises(MapWriteError, match='symlink'):
+        save_map(out, make_cloud(), np.zeros(1, np.int64), np.eye(4)[None])
+    assert victim.read_text() == 'keep me'
+    assert sorted(p.name for p in outside.iterdir()) == ['victim.txt']
+    assert sorted(p.name for p in out.iterdir()) == ['cloud.ply', 'trajectory.tum']  # no temps
+    # a symlinked sub-directory is refused too
+    (out / 'cloud.ply').unlink()
+    (out / 'trajectory.tum').unlink()
+    (out / 'before_reset').symlink_to(outside, target_is_directory=True)
+    with pytest.raises(MapWriteError, match='before_reset'):
+        save_map(out, make_cloud(), np.zeros(1, np.int64), np.eye(4)[None],
+                 subdir='before_reset')
+    assert sorted(p.name for p in outside.iterdir()) == ['victim.txt']
+    with pytest.raises(MapWriteError, match='plain file name'):
+        save_map(out, make_cloud(), np.zeros(1, np.int64), np.eye(4)[None], subdir='../x')
+
+
+def test_save_map_writes_the_pair_as_a_unit(tmp_path) -> None:
+    import hashlib
+    import json
+
+    out = tmp_path / 'map'
+    rng = np.random.default_rng(3)
+    poses = np.array([random_pose(rng, 2.0) for _ in range(4)])
+    stamps = 10**9 + np.arange(4) * 10**8
+    saved = save_map(out, make_cloud(), stamps, poses, stamp_ns=int(stamps[-1]))
+    assert (saved.n_points, saved.n_poses) == (25, 4)
+    manifest = json.loads((out / 'map.json').read_text())
+    for name in ('cloud.ply', 'trajectory.tum'):
+        assert manifest['files'][name]['sha256'] == hashlib.sha256(
+            (out / name).read_bytes()).hexdigest()
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    # a failure half-way (the trajectory cannot be written) leaves the previous pair as it was
+    with pytest.raises(TumFormatError):
+        save_map(out, make_cloud(5), stamps[:2], poses)
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    with pytest.raises(MapWriteError, match='absolute'):
+        save_map(Path('relative'), make_cloud(), stamps, poses)
+    assert len(read_ply(saved.cloud)) == 25 and len(read_tum(saved.trajectory)[0]) == 4
+
+
+@pytest.fixture
+def readonly_dir(tmp_path):
+    """A directory nobody can write into: a read-only tmpfs when running as root (root ignores
+    the mode bits), else mode 0555."""
+    import os
+    import subprocess
+
+    d = tmp_path / 'ro'
+    d.mkdir()
+    if os.geteuid() != 0:
+        d.chmod(0o555)
+        yield d
+        d.chmod(0o755)
+        return
+    if subprocess.run(['mount', '-t', 'tmpfs', '-o', 'ro,size=1m', 'tmpfs', str(d)],
+                      capture_output=True).returncode != 0:
+        pytest.skip('cannot make a read-only directory here (root without mount)')
+    try:
+        yield d
+    finally:
+        subprocess.run(['umount', str(d)], check=True)
+
+
+def test_save_map_into_a_readonly_directory(readonly_dir) -> None:
+    with pytest.raises(MapWriteError, match='cannot create a file for cloud.ply'):
+        save_map(readonly_dir, make_cloud(), np.zeros(1, np.int64), np.eye(4)[None])
+    with pytest.raises(MapWriteError):
+        write_ply(readonly_dir / 'cloud.ply', make_cloud())
+    assert list(readonly_dir.iterdir()) == []

@@ -238,3 +238,37 @@ def test_backlog_is_bounded_when_the_odometry_stalls(isolated_ros, tmp_path: Pat
         assert len(node.feeder.pending) == 0 and node.health.counters.processed == 4
     finally:
         h.close()
+
+
+def call_save_map(h: Harness) -> Trigger.Response:
+    client = h.probe.create_client(Trigger, '/mapping_node/save_map')
+    assert client.wait_for_service(timeout_sec=10)
+    future = client.call_async(Trigger.Request())
+    assert h.wait(future.done, 30)
+    return future.result()
+
+
+@pytest.mark.ros_domain(82)
+def test_save_map_service_never_writes_through_symlinks(isolated_ros, tmp_path: Path) -> None:
+    out, outside = tmp_path / 'map', tmp_path / 'outside'
+    out.mkdir()
+    outside.mkdir()
+    (outside / 'victim.txt').write_text('keep me')
+    (out / 'cloud.ply').symlink_to(outside / 'victim.txt')
+    (out / 'trajectory.tum').symlink_to(outside / 'created.tum')  # dangling
+    h = Harness([Parameter('output_dir', value=str(out)), Parameter('use_gnss', value=False)],
+                'probe_save_symlink')
+    try:
+        h.start()
+        res = call_save_map(h)
+        assert not res.success and 'symlink' in res.message, res.message
+        assert (outside / 'victim.txt').read_text() == 'keep me'
+        assert sorted(p.name for p in outside.iterdir()) == ['victim.txt']
+        (out / 'cloud.ply').unlink()
+        (out / 'trajectory.tum').unlink()
+        res = call_save_map(h)
+        assert res.success, res.message
+        assert sorted(p.name for p in out.iterdir()) == ['cloud.ply', 'map.json',
+                                                          'trajectory.tum']
+    finally:
+        h.close()

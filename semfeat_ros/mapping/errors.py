@@ -28,3 +28,8 @@ class TumFormatError(MappingError):
 
 class AlignmentError(MappingError):
     """Trajectories cannot be aligned (shape mismatch, too few or degenerate points)."""
+
+
+class MapWriteError(MappingError, OSError):
+    """A map file cannot be written safely: the target is a symlink, a name would leave the
+    output directory, or the file system refused the write (read-only, full)."""

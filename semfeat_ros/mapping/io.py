@@ -1,13 +1,29 @@
-"""Map and trajectory files: PLY point clouds with semantics and TUM trajectories."""
+"""Map and trajectory files: PLY point clouds with semantics and TUM trajectories.
+
+Every file is written to a fresh temporary file in the target's directory (created with
+``O_CREAT | O_EXCL | O_NOFOLLOW``), flushed to disk and then renamed over the target with
+``os.replace``: a reader sees the old file or the new one, never half of one, and a symlink
+planted at the target is refused (a rename would replace the link, never write through it).
+:func:`save_map` writes a cloud and its trajectory as one unit, confined to one directory.
+"""
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
 from decimal import Decimal, InvalidOperation
+import hashlib
+import json
+import os
 from pathlib import Path
+import secrets
+import stat
+from typing import BinaryIO
 
 import numpy as np
 
 from semfeat_ros.mapping.cloud import SemanticCloud
-from semfeat_ros.mapping.errors import PlyFormatError, TumFormatError
+from semfeat_ros.mapping.errors import MapWriteError, PlyFormatError, TumFormatError
 from semfeat_ros.mapping.geometry import matrix_to_quaternion, quaternion_to_matrix
 
 # PLY property name -> (PLY type, numpy dtype); the order written.
@@ -25,8 +41,20 @@ _PLY_TYPES = {
 
 
 def write_ply(path: str | Path, cloud: SemanticCloud, *, binary: bool = True) -> Path:
-    """Write ``cloud`` as PLY with x y z (m) red green blue label floor landmark_id n_obs."""
+    """Write ``cloud`` as PLY with x y z (m) red green blue label floor landmark_id n_obs
+    (atomically, see the module docstring).
+
+    Raises:
+        MapWriteError: ``path`` is a symlink or cannot be written.
+    """
     p = Path(path)
+    with _open_dir(p.parent) as dir_fd:
+        tmp = _write_temp(dir_fd, p.name, lambda f: _ply_body(f, cloud, binary))
+        _commit(dir_fd, tmp, p.name, p.parent)
+    return p
+
+
+def _ply_body(f: BinaryIO, cloud: SemanticCloud, binary: bool) -> None:
     n = len(cloud)
     arr = np.zeros(n, dtype=[(name, dt) for name, _, dt in _PLY_PROPS])
     arr['x'], arr['y'], arr['z'] = cloud.xyz[:, 0], cloud.xyz[:, 1], cloud.xyz[:, 2]
@@ -39,16 +67,14 @@ def write_ply(path: str | Path, cloud: SemanticCloud, *, binary: bool = True) ->
         f'element vertex {n}']
     header += [f'property {ptype} {name}' for name, ptype, _ in _PLY_PROPS]
     header.append('end_header')
-    with open(p, 'wb') as f:
-        f.write(('\n'.join(header) + '\n').encode('ascii'))
-        if binary:
-            f.write(arr.tobytes())
-        else:
-            for row in arr:
-                f.write((' '.join(
-                    f'{row[name]:.6f}' if ptype == 'float' else str(int(row[name]))
-                    for name, ptype, _ in _PLY_PROPS) + '\n').encode('ascii'))
-    return p
+    f.write(('\n'.join(header) + '\n').encode('ascii'))
+    if binary:
+        f.write(arr.tobytes())
+    else:
+        for row in arr:
+            f.write((' '.join(
+                f'{row[name]:.6f}' if ptype == 'float' else str(int(row[name]))
+                for name, ptype, _ in _PLY_PROPS) + '\n').encode('ascii'))
 
 
 def read_ply(path: str | Path) -> SemanticCloud:
@@ -118,20 +144,33 @@ def _stamp_str(ns: int) -> str:
 
 
 def write_tum(path: str | Path, stamps_ns: np.ndarray, poses: np.ndarray) -> Path:
-    """Write ``timestamp tx ty tz qx qy qz qw`` lines (s with ns digits, m) of 4x4 poses."""
+    """Write ``timestamp tx ty tz qx qy qz qw`` lines (s with ns digits, m) of 4x4 poses
+    (atomically, see the module docstring).
+
+    Raises:
+        TumFormatError: stamps and poses differ in number.
+        MapWriteError: ``path`` is a symlink or cannot be written.
+    """
+    body = _tum_body(stamps_ns, poses)
+    p = Path(path)
+    with _open_dir(p.parent) as dir_fd:
+        tmp = _write_temp(dir_fd, p.name, lambda f: f.write(body))
+        _commit(dir_fd, tmp, p.name, p.parent)
+    return p
+
+
+def _tum_body(stamps_ns: np.ndarray, poses: np.ndarray) -> bytes:
     stamps = np.asarray(stamps_ns, dtype=np.int64).ravel()
     poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
     if len(stamps) != len(poses):
         raise TumFormatError(f'{len(stamps)} stamps but {len(poses)} poses')
-    p = Path(path)
-    with open(p, 'w', encoding='ascii') as f:
-        f.write('# timestamp tx ty tz qx qy qz qw (map -> base_link, m)\n')
-        for ns, T in zip(stamps, poses):
-            q = matrix_to_quaternion(T[:3, :3])
-            t = T[:3, 3]
-            f.write(f'{_stamp_str(int(ns))} {t[0]:.9f} {t[1]:.9f} {t[2]:.9f} '
-                    f'{q[0]:.12f} {q[1]:.12f} {q[2]:.12f} {q[3]:.12f}\n')
-    return p
+    lines = ['# timestamp tx ty tz qx qy qz qw (map -> base_link, m)\n']
+    for ns, T in zip(stamps, poses):
+        q = matrix_to_quaternion(T[:3, :3])
+        t = T[:3, 3]
+        lines.append(f'{_stamp_str(int(ns))} {t[0]:.9f} {t[1]:.9f} {t[2]:.9f} '
+                     f'{q[0]:.12f} {q[1]:.12f} {q[2]:.12f} {q[3]:.12f}\n')
+    return ''.join(lines).encode('ascii')
 
 
 def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
@@ -159,3 +198,182 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
         T[:3, 3] = vals[:3]
         poses.append(T)
     return np.array(stamps, dtype=np.int64), np.array(poses).reshape(-1, 4, 4)
+
+
+# ------------------------------------------------------------------ safe, confined writes
+
+MANIFEST = 'map.json'
+"""Name of the manifest :func:`save_map` writes last, naming the pair it belongs to."""
+
+
+@dataclass(frozen=True)
+class SavedMap:
+    """What :func:`save_map` wrote: absolute paths and sizes (points, poses)."""
+
+    cloud: Path
+    trajectory: Path
+    manifest: Path
+    n_points: int
+    n_poses: int
+
+
+def _plain_name(name: str) -> str:
+    """``name`` when it is a single path component inside a directory, else MapWriteError."""
+    if not name or name in ('.', '..') or '/' in name or '\0' in name:
+        raise MapWriteError(f'{name!r} is not a plain file name inside the output directory')
+    return name
+
+
+@contextmanager
+def _open_dir(path: Path) -> Iterator[int]:
+    """A file descriptor of the existing directory ``path`` (its last component must not be
+    a symlink); closed on exit."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC)
+    except OSError as exc:
+        raise MapWriteError(f'cannot open the output directory {path}: {exc.strerror}') from exc
+    try:
+        yield fd
+    finally:
+        os.close(fd)
+
+
+def _write_temp(dir_fd: int, target: str, fill: Callable[[BinaryIO], object]) -> str:
+    """A new temporary file next to ``target`` (inside ``dir_fd``) filled by ``fill`` and
+    flushed to disk; returns its name. On any failure nothing is left behind."""
+    tmp = f'.{_plain_name(target)}.{secrets.token_hex(6)}.tmp'
+    try:
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC,
+                     0o644, dir_fd=dir_fd)
+    except OSError as exc:
+        raise MapWriteError(f'cannot create a file for {target}: {exc.strerror}') from exc
+    try:
+        with os.fdopen(fd, 'wb') as f:
+            fill(f)
+            f.flush()
+            os.fsync(f.fileno())
+    except BaseException as exc:
+        _unlink(dir_fd, tmp)
+        if isinstance(exc, OSError) and not isinstance(exc, MapWriteError):
+            raise MapWriteError(f'cannot write {target}: {exc.strerror or exc}') from exc
+        raise
+    return tmp
+
+
+def _unlink(dir_fd: int, name: str) -> None:
+    try:
+        os.unlink(name, dir_fd=dir_fd)
+    except FileNotFoundError:
+        pass
+
+
+def _refuse_symlink(dir_fd: int, name: str, where: Path) -> None:
+    """MapWriteError when ``name`` exists in the directory and is not a regular file."""
+    try:
+        st = os.stat(name, dir_fd=dir_fd, follow_symlinks=False)
+    except FileNotFoundError:
+        return
+    if not stat.S_ISREG(st.st_mode):
+        kind = 'a symlink' if stat.S_ISLNK(st.st_mode) else 'not a regular file'
+        raise MapWriteError(f'refusing to replace {where / name}: it is {kind}')
+
+
+def _commit(dir_fd: int, tmp: str, target: str, where: Path) -> None:
+    """Rename the temporary file ``tmp`` over ``target`` (both inside ``dir_fd``)."""
+    try:
+        _refuse_symlink(dir_fd, target, where)
+        os.replace(tmp, target, src_dir_fd=dir_fd, dst_dir_fd=dir_fd)
+    except BaseException as exc:
+        _unlink(dir_fd, tmp)
+        if isinstance(exc, OSError) and not isinstance(exc, MapWriteError):
+            raise MapWriteError(f'cannot replace {where / target}: {exc.strerror}') from exc
+        raise
+
+
+def _sha256(dir_fd: int, name: str) -> str:
+    fd = os.open(name, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC, dir_fd=dir_fd)
+    with os.fdopen(fd, 'rb') as f:
+        return hashlib.sha256(f.read()).hexdigest()
+
+
+def save_map(out_dir: Path, cloud: SemanticCloud, stamps_ns: np.ndarray, poses: np.ndarray, *,
+             subdir: str | None = None, stamp_ns: int = 0) -> SavedMap:
+    """Write ``cloud.ply``, ``trajectory.tum`` and the manifest ``map.json`` as one unit.
+
+    Args:
+        out_dir: the output directory, absolute and already resolved (symlinks followed once,
+            by the caller); created when missing. Nothing is written outside it.
+        cloud: the map.
+        stamps_ns, poses: the trajectory, (K,) ns and (K, 4, 4) map -> base_link (m).
+        subdir: optional plain name of a sub-directory of ``out_dir`` to write into instead
+            (created; must not be a symlink).
+        stamp_ns: stream time of the map (ns), recorded in the manifest.
+    Both files are written completely to temporary files before either replaces its target;
+    the manifest, written last, names the pair (sizes, SHA-256, counts), so a pair whose
+    renames were interrupted is detectable. Targets that are symlinks are refused.
+
+    Raises:
+        MapWriteError: a target is a symlink, the directory is not writable or a write failed;
+            the previous files are then left as they were.
+        TumFormatError: stamps and poses differ in number.
+    """
+    if not out_dir.is_absolute():
+        raise MapWriteError(f'output directory {out_dir} must be an absolute, resolved path')
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise MapWriteError(f'cannot create the output directory {out_dir}: '
+                            f'{exc.strerror}') from exc
+    with _open_dir(out_dir) as top_fd:
+        if subdir is None:
+            return _save_pair(top_fd, out_dir, cloud, stamps_ns, poses, stamp_ns)
+        name = _plain_name(subdir)
+        try:
+            os.mkdir(name, 0o755, dir_fd=top_fd)
+        except FileExistsError:
+            pass
+        except OSError as exc:
+            raise MapWriteError(f'cannot create {out_dir / name}: {exc.strerror}') from exc
+        try:
+            sub_fd = os.open(name, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC,
+                             dir_fd=top_fd)
+        except OSError as exc:
+            raise MapWriteError(f'cannot open {out_dir / name} (a symlink or not a '
+                                f'directory?): {exc.strerror}') from exc
+        try:
+            return _save_pair(sub_fd, out_dir / name, cloud, stamps_ns, poses, stamp_ns)
+        finally:
+            os.close(sub_fd)
+
+
+def _save_pair(dir_fd: int, where: Path, cloud: SemanticCloud, stamps_ns: np.ndarray,
+               poses: np.ndarray, stamp_ns: int) -> SavedMap:
+    names = {'cloud': 'cloud.ply', 'trajectory': 'trajectory.tum'}
+    for name in (*names.values(), MANIFEST):
+        _refuse_symlink(dir_fd, name, where)
+    tum = _tum_body(stamps_ns, poses)  # a format error before anything is written
+    n_poses = tum.count(b'\n') - 1
+    temps: dict[str, str] = {}
+    try:
+        temps['cloud'] = _write_temp(dir_fd, names['cloud'],
+                                     lambda f: _ply_body(f, cloud, True))
+        temps['trajectory'] = _write_temp(dir_fd, names['trajectory'], lambda f: f.write(tum))
+    except BaseException:
+        for tmp in temps.values():
+            _unlink(dir_fd, tmp)
+        raise
+    files = {}
+    for key in ('cloud', 'trajectory'):
+        files[names[key]] = {'sha256': _sha256(dir_fd, temps[key]),
+                             'bytes': os.stat(temps[key], dir_fd=dir_fd).st_size}
+    try:
+        for key in ('cloud', 'trajectory'):
+            _commit(dir_fd, temps.pop(key), names[key], where)
+    finally:
+        for tmp in temps.values():
+            _unlink(dir_fd, tmp)
+    manifest = json.dumps({'files': files, 'points': len(cloud), 'poses': n_poses,
+                           'stamp_ns': int(stamp_ns)}, indent=2).encode('ascii') + b'\n'
+    _commit(dir_fd, _write_temp(dir_fd, MANIFEST, lambda f: f.write(manifest)), MANIFEST, where)
+    return SavedMap(where / names['cloud'], where / names['trajectory'], where / MANIFEST,
+                    len(cloud), n_poses)

@@ -4,8 +4,10 @@ Feeds ``/semfeat/tracks`` into the incremental factor-graph mapper (GTSAM fixed-
 bearing factors) together with the optional ``/vehicle/odom`` and ``/gnss/fix``; publishes
 ``/semfeat/odometry`` (map -> base_link, z = altitude) and ``/semfeat/path`` every frame and the
 labeled map ``/semantic_cloud`` (latched, transient_local depth 1) at a bounded rate. The service
-``~/save_map`` (std_srvs/Trigger) writes ``cloud.ply`` (x y z rgb label floor landmark_id n_obs)
-and ``trajectory.tum`` into ``output_dir``.
+``~/save_map`` (std_srvs/Trigger) writes ``cloud.ply`` (x y z rgb label floor landmark_id n_obs),
+``trajectory.tum`` and their manifest ``map.json`` as one unit into ``output_dir``
+(:func:`~semfeat_ros.mapping.io.save_map`: temporary files renamed into place, symlinks
+refused, nothing written outside the directory, which is resolved once at start-up).
 
 Threads: the subscription callbacks only parse and queue their inputs; one worker thread applies
 them in arrival order to a :class:`~semfeat_ros.mapping.session.FrameFeeder` (a frame waits for
@@ -44,8 +46,8 @@ from msg_adapters import (
 )
 from msg_adapters.errors import MessageError
 from semfeat_ros.camera import load_camera_yaml
-from semfeat_ros.mapping import write_ply, write_tum
-from semfeat_ros.mapping.errors import MappingError
+from semfeat_ros.mapping.errors import MappingError, MapWriteError
+from semfeat_ros.mapping.io import save_map
 from semfeat_ros.mapping.session import FedFrame, FrameFeeder, MappingSession, SessionConfig
 from semfeat_ros.mapping.types import Tracks
 from semfeat_ros.nodes.diagnostics import NodeHealth, spin_node
@@ -110,7 +112,8 @@ class MappingNodeConfig:
                              'oldest are dropped and counted', range=(1, 10000), read_only=True)
     cloud_period_s: float = param(1.0, 'Period of /semantic_cloud (s): the full map, latched',
                                   range=(0.05, 3600.0), read_only=True)
-    output_dir: str = param('semfeat_map', '~/save_map writes cloud.ply and trajectory.tum here',
+    output_dir: str = param('semfeat_map', '~/save_map writes cloud.ply, trajectory.tum and '
+                            'map.json here (resolved once at start-up; empty = saving off)',
                             read_only=True)
     diagnostics_period_s: float = param(1.0, 'Period of /diagnostics (s)', range=(0.1, 60.0),
                                         read_only=True)
@@ -141,6 +144,7 @@ class MappingNode(Node):
         self.health = NodeHealth(self)
         _, extrinsic = load_camera_yaml(c.camera_config or None)
         self.T_base_cam = extrinsic.T_base_cam
+        self.out_dir = Path(c.output_dir).expanduser().resolve() if c.output_dir else None
         self.session: MappingSession | None = None
         self.feeder: FrameFeeder | None = None
         self._now_ns = 0  # newest stamp seen on the tracks and odometry streams (ns)
@@ -342,7 +346,9 @@ class MappingNode(Node):
 
     def _on_save_map(self, request: Trigger.Request, response: Trigger.Response
                      ) -> Trigger.Response:
-        out = Path(self.conf.output_dir).expanduser().resolve()
+        if self.out_dir is None:
+            response.success, response.message = False, 'saving is off (output_dir is empty)'
+            return response
         with self._lock:
             if self.session is None:
                 response.success, response.message = False, 'no map yet (no CameraInfo)'
@@ -350,16 +356,16 @@ class MappingNode(Node):
             fed = self._release(None)  # the frames still waiting for their odometry
             cloud = self.session.mapper.cloud()
             stamps, poses = self.session.mapper.trajectory()
+            stamp = self.last_result.stamp_ns if self.last_result is not None else 0
         self._publish_frames(*fed)
         try:
-            out.mkdir(parents=True, exist_ok=True)
-            ply = write_ply(out / 'cloud.ply', cloud)
-            tum = write_tum(out / 'trajectory.tum', stamps, poses)
-        except OSError as exc:
-            response.success, response.message = False, f'cannot write to {out}: {exc}'
+            saved = save_map(self.out_dir, cloud, stamps, poses, stamp_ns=stamp)
+        except MapWriteError as exc:
+            response.success, response.message = False, str(exc)
             return response
         response.success = True
-        response.message = f'wrote {ply} ({len(cloud.xyz)} points) and {tum} ({len(stamps)} poses)'
+        response.message = (f'wrote {saved.cloud} ({saved.n_points} points), {saved.trajectory} '
+                            f'({saved.n_poses} poses) and {saved.manifest}')
         return response
 
     def _publish_diagnostics(self) -> None:
