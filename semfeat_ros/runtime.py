@@ -7,11 +7,12 @@ from dataclasses import dataclass
 from pathlib import Path
 import threading
 import time
-from typing import Generic, TypeVar
+from typing import Any, Generic, TypeVar
 
 import numpy as np
 
 T = TypeVar('T')
+K = TypeVar('K')
 
 
 class RateMeter:
@@ -151,27 +152,156 @@ class LatestWorker(Generic[T]):
                     self._busy = False
 
 
-class StampGuard:
-    """Detects time going backwards (bag loop, clock reset) on a stream of stamps (ns)."""
+class RateLimit:
+    """At most one event per ``min_interval_s`` (s, on a monotonic clock); one instance can be
+    shared by several :class:`ChangeGate` so that all the resets of a node are limited
+    together."""
 
-    def __init__(self, tolerance_ns: int = 0):
+    def __init__(self, min_interval_s: float, clock: Callable[[], float] = time.monotonic):
+        if not min_interval_s >= 0:
+            raise ValueError(f'RateLimit: min_interval_s must be >= 0 s, got {min_interval_s}')
+        self.min_interval_s = float(min_interval_s)
+        self._clock = clock
+        self._last = -float('inf')
+
+    def ready(self) -> bool:
+        """True when an event may happen now."""
+        return self._clock() - self._last >= self.min_interval_s
+
+    def mark(self) -> None:
+        """An event happened now."""
+        self._last = self._clock()
+
+
+@dataclass
+class GateCounts:
+    """What a :class:`ChangeGate` decided so far (reported on /diagnostics)."""
+
+    confirmed: int = 0  # changes accepted (each one resets the node's state)
+    outliers: int = 0  # messages of runs that did not persist (ignored)
+    deferred: int = 0  # confirmations held back by the rate limit
+    trimmed: int = 0  # messages of a deferred run dropped to keep only the newest ``confirm``
+
+
+class ChangeGate(Generic[K]):
+    """Accepts a change of a stream's state (a new camera, a new timeline) only when it persists.
+
+    The owner calls :meth:`agree` for a message that agrees with its current state and
+    :meth:`offer` for one that does not. A change is confirmed when ``confirm`` consecutive
+    messages offered it, each continuing the one before (``continues(previous_key, key)``:
+    equal cameras, increasing stamps), and ``limit`` allows a change now (then it is marked).
+    A message that agrees, or that does not continue
+    the pending run, ends the run: its messages were outliers and are dropped. While the rate
+    limit defers a confirmation, the newest ``confirm`` messages of the run are kept.
+
+    Args:
+        confirm: consecutive messages that make a change (1 = every message does).
+        limit: the rate limit of confirmed changes (None: no limit).
+        continues: whether ``key`` continues a run whose last key is ``previous_key``.
+    """
+
+    def __init__(self, confirm: int, limit: RateLimit | None = None,
+                 continues: Callable[[K, K], bool] = lambda a, b: a == b) -> None:
+        if confirm < 1:
+            raise ValueError(f'ChangeGate: confirm must be >= 1, got {confirm}')
+        self.confirm = int(confirm)
+        self.limit = limit or RateLimit(0.0)
+        self._continues = continues
+        self._pending: list[tuple[K, Any]] = []
+        self.counts = GateCounts()
+
+    @property
+    def pending(self) -> int:
+        """Messages of the run waiting for confirmation."""
+        return len(self._pending)
+
+    def agree(self) -> int:
+        """A message agreeing with the current state: a pending run was made of outliers.
+        Returns how many messages were dropped."""
+        dropped = len(self._pending)
+        self.counts.outliers += dropped
+        self._pending = []
+        return dropped
+
+    def offer(self, key: K, item: Any = None) -> tuple[list[Any] | None, int]:
+        """A message disagreeing with the current state (``item``: what the owner wants back).
+
+        Returns ``(run, dropped)``: ``run`` is the items of the confirmed run, oldest first (the
+        owner resets its state to the new one and uses them), or None while the change waits;
+        ``dropped`` counts the outliers discarded by this call (an ended run). While the rate
+        limit defers a change, the oldest messages of the run beyond ``confirm`` are dropped and
+        counted in ``counts.trimmed`` (they were not outliers).
+        """
+        dropped = 0
+        if self._pending and not self._continues(self._pending[-1][0], key):
+            dropped = self.agree()
+        self._pending.append((key, item))
+        if len(self._pending) < self.confirm:
+            return None, dropped
+        if not self.limit.ready():
+            self.counts.deferred += 1
+            extra = len(self._pending) - self.confirm
+            if extra > 0:
+                self._pending = self._pending[extra:]
+                self.counts.trimmed += extra
+            return None, dropped
+        self.limit.mark()
+        self.counts.confirmed += 1
+        run, self._pending = [it for _, it in self._pending], []
+        return run, dropped
+
+    def clear(self) -> None:
+        """Forget a pending run without counting it (the owner reset its state)."""
+        self._pending = []
+
+
+class StampGuard:
+    """Orders a stream of stamps (ns): duplicates, and time going backwards (bag loop, clock
+    reset) accepted only when it persists (:class:`ChangeGate` over increasing stamps).
+
+    Args:
+        tolerance_ns: a stamp at most this much older than the newest is a 'duplicate'.
+        confirm: consecutive older stamps (each newer than the one before) that make a new
+            timeline; 1 = any older stamp restarts.
+        limit: the rate limit of restarts (None: no limit).
+    """
+
+    def __init__(self, tolerance_ns: int = 0, confirm: int = 1,
+                 limit: RateLimit | None = None) -> None:
         self._last: int | None = None
         self._tol = int(tolerance_ns)
+        self.gate: ChangeGate[int] = ChangeGate(confirm, limit, lambda a, b: b > a)
+        self.run: list[Any] = []
+        self.dropped = 0
+        self.trimmed = 0
 
-    def check(self, stamp_ns: int) -> str:
-        """'ok', 'duplicate' (same stamp again) or 'backwards' (and re-arms on the new stamp)."""
-        last, self._last = self._last, stamp_ns
+    def check(self, stamp_ns: int, item: Any = None) -> str:
+        """'ok', 'duplicate' (same stamp again), 'held' (older than the newest stamp, kept until
+        the jump persists or turns out an outlier) or 'backwards' (the jump persisted: the
+        owner restarts and then uses :attr:`run`, the items of the held messages with this one
+        last, oldest first). :attr:`dropped` counts the held messages this call found to be
+        outliers and discarded, :attr:`trimmed` the held messages it dropped while the rate limit
+        defers the restart."""
+        last = self._last
+        self.run, self.dropped, self.trimmed = [], 0, 0
+        trimmed = self.gate.counts.trimmed
         if last is None or stamp_ns > last:
+            self.dropped = self.gate.agree()
+            self._last = stamp_ns
             return 'ok'
-        if stamp_ns == last:
-            return 'duplicate'
         if last - stamp_ns <= self._tol:
-            self._last = last
             return 'duplicate'
+        run, self.dropped = self.gate.offer(stamp_ns, item)
+        self.trimmed = self.gate.counts.trimmed - trimmed
+        if run is None:
+            return 'held'
+        self._last = stamp_ns
+        self.run = run
         return 'backwards'
 
     def reset(self) -> None:
         self._last = None
+        self.gate.clear()
 
 
 def cpu_has_bf16(cpuinfo: str | Path = '/proc/cpuinfo') -> bool:

@@ -26,7 +26,7 @@ from msg_adapters import (
 )
 from semfeat_ros.camera import FisheyeCamera, load_camera_yaml
 from semfeat_ros.labels import load_labels
-from semfeat_ros.mapping import align_umeyama
+from semfeat_ros.mapping import align_umeyama, read_tum
 from semfeat_ros.mapping.synthetic import DriveConfig, garage_drive
 
 CAM = FisheyeCamera(640, 512, 186.7, 186.7, 320.0, 256.0, k=(0.02, -0.004, 0.0005, -0.0001),
@@ -270,5 +270,71 @@ def test_save_map_service_never_writes_through_symlinks(isolated_ros, tmp_path: 
         assert res.success, res.message
         assert sorted(p.name for p in out.iterdir()) == ['cloud.ply', 'map.json',
                                                           'trajectory.tum']
+    finally:
+        h.close()
+
+
+@pytest.mark.ros_domain(85)
+def test_lone_outliers_never_reset_the_map_and_a_persisting_change_does(
+        isolated_ros, tmp_path: Path) -> None:
+    frames = drive_frames(40)
+    h = Harness([Parameter('use_gnss', value=False), Parameter('output_dir', value=str(tmp_path)),
+                 Parameter('min_change_interval_s', value=1.0)], 'probe_outliers')
+    node, wait = h.node, h.wait
+    other = CAM.scaled(320, 256)
+
+    def info(cam: FisheyeCamera, frame_id: str = 'camera_front_optical') -> CameraInfo:
+        return model_to_camera_info(cam, stamp_ns=0, frame_id=frame_id, msg_cls=CameraInfo)
+
+    def feed(fs: list) -> None:
+        for f in fs:
+            h.send_odom(f, np.eye(6) * 1e-4)
+            h.send_tracks(f)
+            time.sleep(0.02)
+
+    try:
+        h.start()
+        h.settle_tracks_topic()
+        feed(frames[:25])
+        assert wait(lambda: node.health.counters.processed >= 25)
+        session = node.session
+        with node._lock:
+            n_before = len(session.mapper.trajectory()[0])
+        assert n_before > 3
+        # lone outliers: another size, another frame, an older tracks stamp, each followed by
+        # the normal stream
+        h.pub_info.publish(info(other))
+        h.pub_info.publish(info(CAM))
+        h.pub_info.publish(info(CAM, 'another_frame'))
+        h.pub_info.publish(info(CAM))
+        h.send_tracks(frames[3])
+        feed(frames[25:30])
+        assert wait(lambda: node.health.counters.processed >= 30)
+        assert wait(lambda: node.health.counters.rejected == 3)
+        assert node.session is session and node.resets == {'camera': 0, 'time': 0}
+        with node._lock:
+            assert len(session.mapper.trajectory()[0]) >= n_before
+        assert not (tmp_path / 'before_reset').exists()
+        values = {kv.key: kv.value for kv in node.health.status().values}
+        assert values['resets_camera'] == '0' and values['resets_time'] == '0'
+        # a bag loop: the older stamps persist, the map restarts (saved first) and the loop's
+        # frames are mapped
+        processed = node.health.counters.processed
+        feed(frames[:6])
+        assert wait(lambda: node.resets['time'] == 1)
+        assert wait(lambda: node.health.counters.processed >= processed + 5)
+        assert len(read_tum(tmp_path / 'before_reset' / 'trajectory.tum')[0]) >= n_before
+        # a camera swap persists: the map restarts, at most once per min_change_interval_s
+        for _ in range(100):  # CameraInfo comes with every frame; the reset may wait 1 s
+            h.pub_info.publish(info(other))
+            if wait(lambda: node.resets['camera'] == 1, 0.1):
+                break
+        assert node.resets['camera'] == 1
+        assert wait(lambda: node.session is not session and node._camera_key[0].width == 320)
+        node._publish_diagnostics()
+        values = {kv.key: kv.value for kv in node.health.status().values}
+        assert values['resets_camera'] == '1' and values['resets_time'] == '1'
+        assert values['change_outliers_ignored'] == '3'
+        assert node.health.counters.rejected == 3
     finally:
         h.close()

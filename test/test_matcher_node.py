@@ -124,13 +124,29 @@ def test_track_ids_persist_and_agree_with_ground_truth(harness: Harness) -> None
     last = tracks_from_msg(h.tracks[-1])
     assert last.ages.max() == 8  # tracked since the first frame
     np.testing.assert_allclose(np.linalg.norm(last.bearings, axis=1), 1.0, atol=1e-5)
-    ids_before = set(int(t) for t in last.track_ids)
-    # Time going backwards (bag loop): tracks restart with fresh ids, never reused.
-    kp, d, _ = observe(pts, desc, 0.0, rng)
-    h.send(10**9, kp, d)
+    # Lone outliers (an older stamp, a CameraInfo of another size) are ignored and counted:
+    # the tracks go on.
+    h.pub_info.publish(model_to_camera_info(CAM.scaled(320, 256), stamp_ns=0,
+                                            frame_id='camera_front_optical', msg_cls=CameraInfo))
+    h.pub_info.publish(model_to_camera_info(CAM, stamp_ns=0, frame_id='camera_front_optical',
+                                            msg_cls=CameraInfo))
     kp, d, _ = observe(pts, desc, 0.4, rng)
     h.send(10**9 + 10**8, kp, d)
-    assert h.wait(lambda: len(h.tracks) >= 10)
+    kp, d, _ = observe(pts, desc, 0.4 * 8, rng)
+    h.send(10**9 + 8 * 10**8, kp, d)
+    assert h.wait(lambda: len(h.tracks) >= 9)
+    assert h.wait(lambda: h.node.health.counters.rejected == 2)
+    last = tracks_from_msg(h.tracks[-1])
+    assert len(h.tracks) == 9 and last.ages.max() == 9 and h.node.resets == 0
+    assert h.node._camera.width == 640
+    ids_before = set(int(t) for t in last.track_ids)
+    # Time going backwards (bag loop) for change_confirm_messages (3) frames: tracks restart
+    # with fresh ids, never reused, and the loop's first frames are tracked too.
+    for i in range(3):
+        kp, d, _ = observe(pts, desc, 0.4 * i, rng)
+        h.send(10**9 + i * 10**8, kp, d)
+    assert h.wait(lambda: len(h.tracks) >= 12)
+    assert h.node.resets == 1 and h.node.health.counters.rejected == 2
     after = tracks_from_msg(h.tracks[-1])
     assert len(after.track_ids) > 100
     assert not ids_before & set(int(t) for t in after.track_ids)

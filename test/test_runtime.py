@@ -6,7 +6,14 @@ import time
 
 import numpy as np
 
-from semfeat_ros.runtime import LatencyStats, LatestWorker, RateMeter, StampGuard
+from semfeat_ros.runtime import (
+    ChangeGate,
+    LatencyStats,
+    LatestWorker,
+    RateLimit,
+    RateMeter,
+    StampGuard,
+)
 
 
 class FakeClock:
@@ -86,6 +93,38 @@ def test_stamp_guard() -> None:
     guard = StampGuard()
     assert [guard.check(s) for s in (10, 20, 20, 5, 6)] == [
         'ok', 'ok', 'duplicate', 'backwards', 'ok']
+
+
+def test_stamp_guard_needs_a_persisting_jump_back() -> None:
+    clock = FakeClock()
+    guard = StampGuard(confirm=3, limit=RateLimit(10.0, clock))
+    seen = [guard.check(s, item=s) for s in (100, 110, 50, 120, 130)]
+    assert seen == ['ok', 'ok', 'held', 'ok', 'ok']  # a lone older stamp: no restart
+    assert guard.dropped == 0 and guard.gate.counts.outliers == 1
+    assert [guard.check(s, item=s) for s in (10, 20)] == ['held', 'held']
+    assert guard.check(30, item=30) == 'backwards' and guard.run == [10, 20, 30]
+    assert guard.check(40) == 'ok'
+    # a second loop within min_interval_s waits; the newest `confirm` stamps are kept
+    assert [guard.check(s, item=s) for s in (1, 2, 3, 4)] == ['held'] * 4
+    assert guard.dropped == 0 and guard.trimmed == 1 and guard.gate.counts.deferred == 2
+    assert guard.gate.counts.outliers == 1
+    clock.t = 11.0
+    assert guard.check(5, item=5) == 'backwards' and guard.run == [2, 3, 4, 5]
+    assert guard.gate.counts.confirmed == 2
+    # older stamps that are not a timeline of their own (not increasing) never restart
+    assert [guard.check(s) for s in (6, 7, 3, 2, 1, 8)] == ['ok', 'ok', 'held', 'held', 'held',
+                                                            'ok']
+    assert guard.gate.counts.confirmed == 2
+
+
+def test_change_gate_confirms_only_consecutive_equal_keys() -> None:
+    gate: ChangeGate[str] = ChangeGate(confirm=2)
+    assert gate.offer('b') == (None, 0)
+    assert gate.agree() == 1  # 'b' was a lone outlier
+    assert gate.offer('b') == (None, 0)
+    assert gate.offer('c') == (None, 1)  # 'c' does not continue 'b'
+    assert gate.offer('c', item='x') == ([None, 'x'], 0)
+    assert gate.counts.confirmed == 1 and gate.counts.outliers == 2
 
 
 def test_cpu_has_bf16_reads_the_flags(tmp_path) -> None:

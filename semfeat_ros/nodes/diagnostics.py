@@ -47,9 +47,10 @@ class NodeHealth:
         if compute_s is not None:
             self.compute.add(compute_s)
 
-    def on_reject(self, reason: str) -> None:
-        """Count a rejected input and log it, throttled (the node keeps running)."""
-        self.counters.rejected += 1
+    def on_reject(self, reason: str, count: int = 1) -> None:
+        """Count ``count`` rejected inputs and log the reason, throttled (the node keeps
+        running)."""
+        self.counters.rejected += count
         self.last_error = reason
         self._node.get_logger().warning(f'rejected input: {reason}', throttle_duration_sec=2.0)
 

@@ -15,6 +15,15 @@ the odometry after its stamp) and runs the mapper. The executor, which takes one
 subscription each time it wakes, never waits for the mapper, so the 50 Hz odometry is taken as
 it arrives. When the mapper cannot keep up, at most ``max_backlog`` frames wait; older ones are
 dropped and counted (``frames_dropped``), never queued without bound.
+
+Resets: the map restarts when the camera changes (CameraInfo of another model or frame) or
+time goes backwards on the tracks stream (a bag loop), but only when the change persists for
+``change_confirm_messages`` consecutive messages and at most once per
+``min_change_interval_s``; a lone outlier is ignored and counted as rejected. Before a reset the
+map is saved into ``<output_dir>/before_reset``. ``/diagnostics`` reports the resets
+(``resets_camera``, ``resets_time``), the ignored outliers and the deferred resets. The wheel
+odometry stream is guarded the same way: a lone older stamp is ignored, a persisting one
+restarts its buffer.
 """
 from __future__ import annotations
 
@@ -52,7 +61,7 @@ from semfeat_ros.mapping.session import FedFrame, FrameFeeder, MappingSession, S
 from semfeat_ros.mapping.types import Tracks
 from semfeat_ros.nodes.diagnostics import NodeHealth, spin_node
 from semfeat_ros.nodes.params import declare_config, guard_updates, param
-from semfeat_ros.runtime import StampGuard
+from semfeat_ros.runtime import ChangeGate, RateLimit, StampGuard
 
 
 @dataclass
@@ -112,6 +121,13 @@ class MappingNodeConfig:
                              'oldest are dropped and counted', range=(1, 10000), read_only=True)
     cloud_period_s: float = param(1.0, 'Period of /semantic_cloud (s): the full map, latched',
                                   range=(0.05, 3600.0), read_only=True)
+    change_confirm_messages: int = param(
+        3, 'Consecutive messages that make a change accepted: a CameraInfo of another camera, '
+        'or tracks (odometry) stamped before the newest one (a bag loop); a shorter run is '
+        'ignored and counted as rejected', range=(1, 1000), read_only=True)
+    min_change_interval_s: float = param(
+        5.0, 'Shortest time between two resets of the map (s, wall clock); a persisting '
+        'change waits for it', range=(0.0, 3600.0), read_only=True)
     output_dir: str = param('semfeat_map', '~/save_map writes cloud.ply, trajectory.tum and '
                             'map.json here (resolved once at start-up; empty = saving off)',
                             read_only=True)
@@ -148,9 +164,14 @@ class MappingNode(Node):
         self.session: MappingSession | None = None
         self.feeder: FrameFeeder | None = None
         self._now_ns = 0  # newest stamp seen on the tracks and odometry streams (ns)
-        self._camera_key: tuple | None = None
+        self._camera_key: tuple | None = None  # the newest accepted camera (executor thread)
         self._lock = threading.Lock()
-        self.stamps = StampGuard()
+        limit = RateLimit(c.min_change_interval_s)  # shared: camera and time resets
+        self._camera_gate: ChangeGate[tuple] = ChangeGate(c.change_confirm_messages, limit)
+        self.stamps = StampGuard(confirm=c.change_confirm_messages, limit=limit)
+        self._odom_stamps = StampGuard(confirm=c.change_confirm_messages)
+        self.resets = {'camera': 0, 'time': 0}
+        self.health.extra.update(resets_camera='0', resets_time='0')
         self._dirty = False
         self.last_result = None
         self._inbox: deque[tuple[str, Any]] = deque()  # parsed inputs, arrival order
@@ -187,15 +208,20 @@ class MappingNode(Node):
             return
         key = (camera, msg.header.frame_id)
         if key == self._camera_key:
+            self._count_outliers('CameraInfo of another camera', self._camera_gate.agree())
             return
-        with self._lock:
-            if self.session is not None:
-                self.get_logger().warning('camera changed: the map restarts')
-            self._camera_key = key
-            self.session = MappingSession(camera, self.T_base_cam, mapper_conf(self.conf),
-                                          session_conf(self.conf))
-            self.feeder = FrameFeeder(self.session, self.conf.odom_wait_s)
-            self.stamps.reset()
+        if self._camera_key is not None:
+            run, dropped = self._camera_gate.offer(key)
+            self._count_outliers('CameraInfo of another camera', dropped)
+            if run is None:
+                return
+        self._camera_key = key
+        self._queue('camera', key)
+
+    def _count_outliers(self, what: str, n: int) -> None:
+        if n:
+            self.health.on_reject(f'{n} {what} ignored: the change did not persist for '
+                                  f'{self.conf.change_confirm_messages} messages', count=n)
 
     def _on_odom(self, msg: Odometry) -> None:
         try:
@@ -203,7 +229,13 @@ class MappingNode(Node):
         except MessageError as exc:
             self.health.on_reject(f'odometry: {exc}')
             return
-        self._queue('odom', sample)
+        order = self._odom_stamps.check(sample.stamp_ns, sample)
+        self._count_outliers('odometry with older stamps', self._odom_stamps.dropped)
+        if order == 'ok':
+            self._queue('odom', sample)
+        elif order == 'backwards':  # the odometry restarted (bag loop): its buffer starts again
+            for held in self._odom_stamps.run:
+                self._queue('odom', held)
 
     def _on_gnss(self, msg: NavSatFix) -> None:
         try:
@@ -248,6 +280,9 @@ class MappingNode(Node):
 
     def _apply(self, kind: str, item: Any) -> None:
         """One queued input into the feeder (call with the lock held)."""
+        if kind == 'camera':
+            self._start_session(*item)
+            return
         if self.feeder is None:
             if kind == 'tracks':
                 self.health.on_waiting('no CameraInfo received yet; tracks skipped')
@@ -264,20 +299,53 @@ class MappingNode(Node):
         except MappingError as exc:
             self.health.on_reject(f'{kind}: {exc}')
 
+    def _start_session(self, camera: Any, frame_id: str) -> None:
+        """A new map for an accepted camera (call with the lock held)."""
+        if self.session is not None:
+            self._before_reset('camera', f'camera changed ({camera.width}x{camera.height} px, '
+                               f'frame {frame_id!r})')
+        self.session = MappingSession(camera, self.T_base_cam, mapper_conf(self.conf),
+                                      session_conf(self.conf))
+        self.feeder = FrameFeeder(self.session, self.conf.odom_wait_s)
+        self.stamps.reset()
+        self._now_ns = 0
+
+    def _before_reset(self, kind: str, reason: str) -> None:
+        """Count a reset and save the map it ends into ``<output_dir>/before_reset`` (call
+        with the lock held)."""
+        self.resets[kind] += 1
+        self.health.extra[f'resets_{kind}'] = str(self.resets[kind])
+        self.health.extra['last_reset'] = reason
+        saved = ''
+        stamps, poses = self.session.mapper.trajectory()
+        if self.out_dir is not None and len(stamps):
+            try:
+                done = save_map(self.out_dir, self.session.mapper.cloud(), stamps, poses,
+                                subdir='before_reset', stamp_ns=int(stamps[-1]))
+                saved = f'; the map was saved to {done.cloud.parent}'
+            except MapWriteError as exc:
+                saved = f'; the map could not be saved: {exc}'
+        self.get_logger().warning(f'{reason}: the map restarts{saved}')
+
     def _push_tracks(self, tr: Any) -> None:
-        order = self.stamps.check(tr.stamp_ns)
+        order = self.stamps.check(tr.stamp_ns, tr)
+        self._count_outliers('tracks with older stamps', self.stamps.dropped)
+        self.health.counters.dropped += self.stamps.trimmed  # a loop's frames while it waits
         if order == 'duplicate':
             self.health.on_reject(f'tracks with a repeated stamp {tr.stamp_ns} ns skipped')
             return
+        if order == 'held':  # older than the newest frame: mapped only if the jump persists
+            return
         if order == 'backwards':
-            self.get_logger().warning('time went backwards (bag loop?): the map restarts')
+            self._before_reset('time', 'time went backwards (bag loop?)')
             self.session.reset()
             self.feeder.reset()
             self._now_ns = 0
-        self.feeder.push(Tracks(tr.stamp_ns, tr.track_ids.astype(np.int64),
-                                tr.bearings.astype(np.float64), tr.uv.astype(np.float64),
-                                tr.labels))
-        self._now_ns = max(self._now_ns, tr.stamp_ns)
+        for t in self.stamps.run if order == 'backwards' else [tr]:
+            self.feeder.push(Tracks(t.stamp_ns, t.track_ids.astype(np.int64),
+                                    t.bearings.astype(np.float64), t.uv.astype(np.float64),
+                                    t.labels))
+            self._now_ns = max(self._now_ns, t.stamp_ns)
 
     def _release(self, now_ns: int | None
                  ) -> tuple[list[tuple[FedFrame, tuple | None]], dict[str, Any]]:
@@ -369,6 +437,11 @@ class MappingNode(Node):
         return response
 
     def _publish_diagnostics(self) -> None:
+        gates = (self._camera_gate.counts, self.stamps.gate.counts)
+        self.health.extra.update(
+            change_outliers_ignored=str(sum(g.outliers for g in gates)
+                                        + self._odom_stamps.gate.counts.outliers),
+            resets_deferred=str(sum(g.deferred for g in gates)))
         self.health.publish()
 
     def destroy_node(self) -> None:

@@ -5,6 +5,11 @@ test, semantic consistency), verified geometrically on unit bearings of the fish
 published as ``/semfeat/tracks`` (PointCloud2: u, v, bx, by, bz, label, track_id, age, score).
 The debug view ``/semfeat/matches/image`` (previous | current, inliers green, rejected red) is
 drawn only while someone subscribes to it.
+
+A change of camera (CameraInfo of another model or frame) or time going backwards on the
+features stream (a bag loop) is accepted only when it persists for ``change_confirm_messages``
+consecutive messages; the tracks then restart, at most once per ``min_change_interval_s``. A
+lone outlier is ignored and counted as rejected; ``/diagnostics`` reports the resets.
 """
 from __future__ import annotations
 
@@ -34,7 +39,7 @@ from semfeat_ros.matching.sequential import SequentialMatcher
 from semfeat_ros.nodes.diagnostics import NodeHealth, spin_node, wall_time
 from semfeat_ros.nodes.params import declare_config, guard_updates, param
 from semfeat_ros.pipeline import frame_features
-from semfeat_ros.runtime import StampGuard
+from semfeat_ros.runtime import ChangeGate, RateLimit, StampGuard
 
 
 @dataclass
@@ -76,6 +81,13 @@ class MatcherNodeConfig:
                                   range=(0, 10), read_only=True)
     max_time_gap_s: float = param(2.0, 'A larger gap between frames restarts tracking (s)',
                                   range=(0.0, 3600.0), read_only=True)
+    change_confirm_messages: int = param(
+        3, 'Consecutive messages that make a change accepted: a CameraInfo of another camera, '
+        'or features stamped before the newest one (a bag loop); a shorter run is ignored and '
+        'counted as rejected', range=(1, 1000), read_only=True)
+    min_change_interval_s: float = param(
+        5.0, 'Shortest time between two restarts of the tracks by time going backwards (s, wall '
+        'clock); a persisting jump waits for it', range=(0.0, 3600.0), read_only=True)
     seed: int = param(0, 'Seed of the RANSAC sampler (deterministic replays)',
                       range=(0, 2**31 - 1), read_only=True)
     diagnostics_period_s: float = param(1.0, 'Period of /diagnostics (s)', range=(0.1, 60.0),
@@ -102,9 +114,13 @@ class MatcherNode(Node):
         guard_updates(self, MatcherNodeConfig)
         self.health = NodeHealth(self)
         self.matcher = SequentialMatcher(matcher_conf(c))
-        self.stamps = StampGuard()
+        self.stamps = StampGuard(confirm=c.change_confirm_messages,
+                                 limit=RateLimit(c.min_change_interval_s))
+        self._camera_gate: ChangeGate[tuple] = ChangeGate(c.change_confirm_messages)
         self._camera: CameraModel | None = None
         self._camera_frame = ''
+        self.resets = 0
+        self.health.extra['resets_time'] = '0'
         self._images: OrderedDict[int, Image | CompressedImage] = OrderedDict()
         self._last_image: np.ndarray | None = None
         qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE
@@ -123,10 +139,25 @@ class MatcherNode(Node):
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
         try:
-            self._camera = camera_info_to_model(msg, fov_deg=self.get_parameter('fov_deg').value)
-            self._camera_frame = msg.header.frame_id
+            camera = camera_info_to_model(msg, fov_deg=self.get_parameter('fov_deg').value)
         except MessageError as exc:
             self.health.on_reject(f'camera_info: {exc}')
+            return
+        key = (camera, msg.header.frame_id)
+        if key == (self._camera, self._camera_frame):
+            self._count_outliers('CameraInfo of another camera', self._camera_gate.agree())
+            return
+        if self._camera is not None:
+            run, dropped = self._camera_gate.offer(key)
+            self._count_outliers('CameraInfo of another camera', dropped)
+            if run is None:
+                return
+        self._camera, self._camera_frame = key
+
+    def _count_outliers(self, what: str, n: int) -> None:
+        if n:
+            self.health.on_reject(f'{n} {what} ignored: the change did not persist for '
+                                  f'{self.conf.change_confirm_messages} messages', count=n)
 
     def _on_image(self, msg: Image | CompressedImage) -> None:
         if self.pub_debug.get_subscription_count() == 0:
@@ -148,13 +179,25 @@ class MatcherNode(Node):
         if self._camera is None:
             self.health.on_waiting('no CameraInfo received yet; features skipped')
             return
-        order = self.stamps.check(feats.stamp_ns)
+        order = self.stamps.check(feats.stamp_ns, feats)
+        self._count_outliers('features with older stamps', self.stamps.dropped)
+        self.health.counters.dropped += self.stamps.trimmed  # a loop's frames while it waits
         if order == 'duplicate':
             self.health.on_reject(f'features with a repeated stamp {feats.stamp_ns} ns skipped')
             return
+        if order == 'held':  # older than the newest frame: tracked only if the jump persists
+            return
         if order == 'backwards':
+            self.resets += 1
+            self.health.extra['resets_time'] = str(self.resets)
             self.get_logger().warning('time went backwards (bag loop?): tracks restarted')
             self.matcher.reset()
+            for held in self.stamps.run[:-1]:  # the loop's first frames, then this one
+                self._track(held, wall_time())
+        self._track(feats, t0)
+
+    def _track(self, feats: Any, t0: float) -> None:
+        """Match one frame's features and publish its tracks (``t0``: wall time it arrived)."""
         try:
             frame = frame_features(feats.stamp_ns, feats.keypoints, feats.descriptors,
                                    feats.labels, feats.scores, self._camera, self._camera_frame)
@@ -190,6 +233,10 @@ class MatcherNode(Node):
                                               msg_cls=Image))
 
     def _publish_diagnostics(self) -> None:
+        counts = (self._camera_gate.counts, self.stamps.gate.counts)
+        self.health.extra.update(
+            change_outliers_ignored=str(sum(g.outliers for g in counts)),
+            resets_deferred=str(self.stamps.gate.counts.deferred))
         self.health.publish()
 
 
