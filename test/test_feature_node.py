@@ -51,10 +51,11 @@ def frame(seed: int) -> np.ndarray:
 class Harness:
     """feature_node plus a probe node on one executor, spinning in a thread."""
 
-    def __init__(self, weights: Path, transport: str = 'raw'):
+    def __init__(self, weights: Path, transport: str = 'raw',
+                 overrides: list[Parameter] | None = None):
         from semfeat_ros.nodes.feature_node import FeatureNode
 
-        overrides = [Parameter('weights', value=str(weights)),
+        overrides = [*(overrides or []), Parameter('weights', value=str(weights)),
                      Parameter('input_transport', value=transport),
                      Parameter('input_reliability', value='reliable'),
                      Parameter('input_depth', value=50),
@@ -226,3 +227,56 @@ def test_network_runtime_and_warmup_parameters(ros_context, untrained_weights: P
     for bad in ([640], [640, 8]):
         with pytest.raises(ValueError, match='warmup_size'):
             FeatureNode(parameter_overrides=[*base, Parameter('warmup_size', value=bad)])
+
+
+@pytest.mark.ros_domain(88)
+def test_camera_sizes_neither_leak_sessions_nor_threads(ros_context,
+                                                        untrained_weights: Path) -> None:
+    from semfeat_ros.model.onnx_backend import MAX_SESSIONS
+
+    h = Harness(untrained_weights, overrides=[Parameter('min_change_interval_s', value=0.0)])
+    node = h.node
+    ort = node.frontend.extractor._ort
+    try:
+        assert h.wait(lambda: h.pub_info.get_subscription_count() > 0
+                      and h.pub_img.get_subscription_count() > 0)
+        h.send_info()
+        assert h.wait(lambda: node._camera is not None)
+        assert h.wait(lambda: node._preparer.idle())
+        sessions = dict(ort._sessions)
+
+        def preparers() -> int:
+            return sum(t.name == 'feature-prepare' for t in threading.enumerate())
+
+        # 20 lone CameraInfo of other sizes, each followed by the camera's own: all ignored
+        for i in range(20):
+            other = h.camera.scaled(W + 16 * (i + 1), H)
+            h.pub_info.publish(model_to_camera_info(other, stamp_ns=2, frame_id='cam',
+                                                    msg_cls=CameraInfo))
+            h.send_info()
+            time.sleep(0.02)  # within the CameraInfo queue depth (10)
+        assert h.wait(lambda: node.health.counters.rejected == 20), node.health.counters
+        assert preparers() == 1
+        assert node._camera.width == W and dict(ort._sessions) == sessions
+        # sizes that persist are accepted, readied by the one preparer; the cache stays bounded
+        for i in range(MAX_SESSIONS + 2):
+            other = h.camera.scaled(W, H + 32 * (i + 1))
+            for _ in range(3):
+                h.pub_info.publish(model_to_camera_info(other, stamp_ns=3, frame_id='cam',
+                                                        msg_cls=CameraInfo))
+                time.sleep(0.02)
+            assert h.wait(lambda o=other: node._camera == o)
+            assert preparers() == 1
+            assert len(ort._sessions) <= MAX_SESSIONS
+        assert h.wait(lambda: node._preparer.idle(), 120)
+        net_size = node.frontend.extractor.network_size(other.width, other.height)
+        assert net_size[::-1] in ort._sessions
+        # and a frame of the last size is processed
+        before = len(h.features)
+        img = np.ascontiguousarray(np.resize(frame(4), (other.height, other.width, 3)))
+        h.pub_img.publish(numpy_to_image(img, 'rgb8', stamp_ns=20, frame_id='cam',
+                                         msg_cls=Image))
+        assert h.wait(lambda: len(h.features) > before, 60)
+        assert node.health.counters.rejected == 20 and node.health.counters.errors == 0
+    finally:
+        h.close()

@@ -343,6 +343,59 @@ def test_onnxruntime_sessions_per_size_and_prepare(monkeypatch: pytest.MonkeyPat
     assert len(exports) == 2
 
 
+def test_onnxruntime_sessions_are_bounded_lru() -> None:
+    from semfeat_ros.model.onnx_backend import MAX_SESSIONS
+
+    torch.manual_seed(0)
+    ext = _extractor(SemFeatNet(SMALL).eval(), backend='onnxruntime', resize_max=128)
+    ort = ext._ort
+    stride = ext.model.stride
+    sizes = [(128, stride * (i + 1)) for i in range(MAX_SESSIONS + 3)]  # (w, h) network sizes
+    for w, h in sizes:
+        assert ext.network_size(w * 2, h * 2) == (w, h)
+        ext.extract(np.zeros((h * 2, w * 2), np.uint8))
+        assert len(ort._sessions) <= MAX_SESSIONS
+    assert list(ort._sessions) == [(h, w) for w, h in sizes[-MAX_SESSIONS:]]
+    assert ort.evicted == 3
+    ort.session(*sizes[-MAX_SESSIONS][::-1])  # used again: the most recent now
+    assert list(ort._sessions)[-1] == sizes[-MAX_SESSIONS][::-1]
+
+
+def test_onnxruntime_session_build_does_not_block_inference(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    import threading
+
+    from semfeat_ros.model import onnx_backend
+
+    torch.manual_seed(0)
+    ext = _extractor(SemFeatNet(SMALL).eval(), backend='onnxruntime', resize_max=64)
+    ext.prepare(64, 48)  # a ready size
+    release, building = threading.Event(), threading.Event()
+    real = onnx_backend.OrtNetwork._open
+
+    def slow_open(self: onnx_backend.OrtNetwork, height: int, width: int) -> object:
+        building.set()
+        assert release.wait(30)
+        return real(self, height, width)
+
+    monkeypatch.setattr(onnx_backend.OrtNetwork, '_open', slow_open)
+    preparer = threading.Thread(target=ext.prepare, args=(64, 32))  # another size: slow build
+    preparer.start()
+    try:
+        assert building.wait(30)
+        done = threading.Event()
+        runner = threading.Thread(target=lambda: (ext.extract(np.zeros((48, 64), np.uint8)),
+                                                  done.set()))
+        runner.start()
+        # the ready size runs while the other one is still being built
+        assert done.wait(30), 'inference waited for the session being built'
+        runner.join()
+    finally:
+        release.set()
+        preparer.join(30)
+    assert (32, 64) in ext._ort._sessions
+
+
 def test_backend_choice_and_errors(monkeypatch: pytest.MonkeyPatch) -> None:
     from semfeat_ros.model import extractor as extractor_module
     from semfeat_ros.model import onnx_backend

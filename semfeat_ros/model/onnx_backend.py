@@ -12,11 +12,16 @@ on the AVX-512 machine of earlier sessions; ONNX Runtime runs the same graph in 
 (1.65x; ``extract()`` at 1920x1536: 66 against 120 ms), with outputs equal to about 1e-5
 (``python -m semfeat_ros.model.benchmark``; docs/RESULTS.md, session 11).
 
+Sessions are kept per input size in a least-recently-used cache of :data:`MAX_SESSIONS` sizes
+(each holds about 30 MB at 640x512); a session is built without holding the lock that the
+inference of the other, ready sizes takes, so a new size never stalls them.
+
 The intra-op threads do not spin by default: the nodes share the CPU with each other (see the
 ``OMP_WAIT_POLICY`` note in :mod:`semfeat_ros.model`).
 """
 from __future__ import annotations
 
+from collections import OrderedDict
 import importlib.util
 import io
 import threading
@@ -33,6 +38,9 @@ OUTPUTS = ('heatmap', 'descriptors', 'segmentation_logits')
 
 OPSET = 17
 """ONNX opset of the export (pixel_shuffle, bilinear resize and softmax are all native)."""
+
+MAX_SESSIONS = 3
+"""Input sizes whose sessions are kept (least recently used evicted first)."""
 
 
 def onnxruntime_available() -> bool:
@@ -60,11 +68,13 @@ class OrtNetwork:
         num_threads: ONNX Runtime intra-op threads (CPU cores).
         spin: let idle intra-op threads spin-wait (faster alone, slower beside other busy
             processes on few cores).
+        max_sessions: input sizes whose sessions are kept (LRU).
     Raises:
         ModelConfigError: onnxruntime or onnx is not installed.
     """
 
-    def __init__(self, model: nn.Module, num_threads: int, spin: bool = False) -> None:
+    def __init__(self, model: nn.Module, num_threads: int, spin: bool = False,
+                 max_sessions: int = MAX_SESSIONS) -> None:
         if not onnxruntime_available():
             raise ModelConfigError("backend 'onnxruntime' needs the onnxruntime and onnx "
                                    "packages (pip install -r requirements.txt); or set backend "
@@ -74,8 +84,14 @@ class OrtNetwork:
         self.model = _Outputs(model).eval()
         self.num_threads = int(num_threads)
         self.spin = bool(spin)
-        self._sessions: dict[tuple[int, int], Any] = {}
-        self._lock = threading.Lock()  # one export per size, also when a warm-up thread races
+        if max_sessions < 1:
+            raise ModelConfigError(f'OrtNetwork: max_sessions must be >= 1, got {max_sessions}')
+        self.max_sessions = int(max_sessions)
+        self.evicted = 0  # sessions dropped from the cache
+        self._sessions: OrderedDict[tuple[int, int], Any] = OrderedDict()  # LRU order
+        self._building: dict[tuple[int, int], threading.Event] = {}
+        self._lock = threading.Lock()  # guards the two dicts; never held while building
+        self._export_lock = threading.Lock()  # one export at a time (tracing is not reentrant)
 
     def export(self, height: int, width: int) -> bytes:
         """The ONNX graph (serialized protobuf) for a ``(1, 3, height, width)`` input."""
@@ -88,12 +104,34 @@ class OrtNetwork:
         return buf.getvalue()
 
     def session(self, height: int, width: int) -> Any:
-        """The ONNX Runtime session of one input size (exported and opened on first use)."""
+        """The ONNX Runtime session of one input size (exported and opened on first use, once
+        also when several threads ask for it; other sizes stay usable meanwhile)."""
         key = (int(height), int(width))
-        with self._lock:
-            if key not in self._sessions:
-                self._sessions[key] = self._open(*key)
-            return self._sessions[key]
+        while True:
+            with self._lock:
+                sess = self._sessions.get(key)
+                if sess is not None:
+                    self._sessions.move_to_end(key)
+                    return sess
+                event = self._building.get(key)
+                owner = event is None
+                if owner:
+                    event = self._building[key] = threading.Event()
+            if owner:
+                break
+            event.wait()  # built by another thread; on its failure this thread tries
+        try:
+            sess = self._open(*key)
+            with self._lock:
+                self._sessions[key] = sess
+                while len(self._sessions) > self.max_sessions:
+                    self._sessions.popitem(last=False)
+                    self.evicted += 1
+            return sess
+        finally:
+            with self._lock:
+                del self._building[key]
+            event.set()
 
     def _open(self, height: int, width: int) -> Any:
         import onnxruntime as ort
@@ -106,8 +144,9 @@ class OrtNetwork:
         opts.log_severity_level = 3  # errors only
         opts.add_session_config_entry('session.intra_op.allow_spinning',
                                       '1' if self.spin else '0')
-        return ort.InferenceSession(self.export(height, width), opts,
-                                    providers=['CPUExecutionProvider'])
+        with self._export_lock:
+            graph = self.export(height, width)
+        return ort.InferenceSession(graph, opts, providers=['CPUExecutionProvider'])
 
     def __call__(self, image: torch.Tensor) -> dict[str, torch.Tensor]:
         """Forward of a normalised image.

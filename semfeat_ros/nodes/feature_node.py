@@ -5,6 +5,12 @@ Subscribes to the front camera (raw ``Image`` or ``CompressedImage``, by paramet
 callback; publishes ``/semfeat/features`` (PointCloud2), ``/semfeat/semantic_mask`` (mono8) and,
 only when subscribed, ``/semfeat/semantic_mask/color`` (rgb8 overlay). ``/diagnostics`` reports
 rates, latency and the frames dropped or rejected.
+
+A CameraInfo of another camera (size or intrinsics) replaces the current one only when
+``change_confirm_messages`` consecutive messages carry it, at most once per
+``min_change_interval_s``; a lone outlier is ignored and counted as rejected. The network is
+readied for a new size by one preparer thread (the newest request wins) while frames of the
+sizes already readied go on; the runtime keeps the sessions of a few sizes only (LRU).
 """
 from __future__ import annotations
 
@@ -26,7 +32,7 @@ from semfeat_ros.frontend import FrontendConfig, FrontendError, SemanticFrontend
 from semfeat_ros.labels import load_labels
 from semfeat_ros.nodes.diagnostics import NodeHealth, spin_node, wall_time
 from semfeat_ros.nodes.params import declare_config, guard_updates, param
-from semfeat_ros.runtime import LatestWorker, cpu_has_bf16
+from semfeat_ros.runtime import ChangeGate, LatestWorker, RateLimit, cpu_has_bf16
 
 
 @dataclass
@@ -87,8 +93,14 @@ class FeatureNodeConfig:
     warmup_size: list[int] = param([1920, 1536], 'Image size [width, height] (px) the network '
                                    'is readied for at start-up, before the inputs are '
                                    'subscribed (onnxruntime exports one graph per size, ~2 s); '
-                                   'other sizes are readied when their CameraInfo arrives; '
+                                   'other sizes are readied when their CameraInfo is accepted; '
                                    '[0, 0] = none', read_only=True)
+    change_confirm_messages: int = param(
+        3, 'Consecutive CameraInfo messages of another camera that replace the current one; a '
+        'shorter run is ignored and counted as rejected', range=(1, 1000), read_only=True)
+    min_change_interval_s: float = param(
+        5.0, 'Shortest time between two camera changes (s, wall clock); a persisting change '
+        'waits for it', range=(0.0, 3600.0), read_only=True)
     max_image_pixels: int = param(50_000_000, 'Frames with more pixels are rejected',
                                   range=(1, 500_000_000), read_only=True)
     diagnostics_period_s: float = param(1.0, 'Period of /diagnostics (s)', range=(0.1, 60.0),
@@ -123,6 +135,10 @@ class FeatureNode(Node):
             self.frontend.prepare(*warmup)
         self._camera: CameraModel | None = None
         self._camera_lock = threading.Lock()
+        self._camera_gate: ChangeGate[CameraModel] = ChangeGate(
+            c.change_confirm_messages, RateLimit(c.min_change_interval_s))
+        self._preparer: LatestWorker[tuple[int, int]] = LatestWorker(
+            self._prepare, self.health.on_error, name='feature-prepare')
         self._worker: LatestWorker = LatestWorker(self._process, self.health.on_error,
                                                   name='feature-inference')
 
@@ -151,14 +167,30 @@ class FeatureNode(Node):
             self.health.on_reject(f'camera_info: {exc}')
             return
         with self._camera_lock:
-            size = (camera.width, camera.height)
-            new_size = self._camera is None or (self._camera.width, self._camera.height) != size
+            current = self._camera
+        if camera == current:
+            self._count_outliers(self._camera_gate.agree())
+            return
+        if current is not None:
+            run, dropped = self._camera_gate.offer(camera)
+            self._count_outliers(dropped)
+            if run is None:
+                return
+        with self._camera_lock:
             self._camera = camera
-        if new_size:  # ready the network for this size off the executor (onnxruntime: ~2 s)
-            threading.Thread(target=self._prepare, args=size, daemon=True,
-                             name='feature-prepare').start()
+        size = (camera.width, camera.height)
+        if current is None or (current.width, current.height) != size:
+            # ready the network for this size off the executor (onnxruntime: ~2 s)
+            self._preparer.submit(size)
 
-    def _prepare(self, width: int, height: int) -> None:
+    def _count_outliers(self, n: int) -> None:
+        if n:
+            self.health.on_reject(f'camera_info: {n} CameraInfo of another camera ignored: the '
+                                  f'change did not persist for '
+                                  f'{self.conf.change_confirm_messages} messages', count=n)
+
+    def _prepare(self, size: tuple[int, int]) -> None:
+        width, height = size
         try:
             self.frontend.prepare(width, height)
         except Exception as exc:  # noqa: BLE001 - the first frame reports it again, counted
@@ -210,9 +242,13 @@ class FeatureNode(Node):
     def _publish_diagnostics(self) -> None:
         self.health.counters.dropped = self._worker.dropped
         self.health.extra['keypoints_last'] = str(self.frontend.last_count)
+        counts = self._camera_gate.counts
+        self.health.extra.update(camera_changes=str(counts.confirmed),
+                                 change_outliers_ignored=str(counts.outliers))
         self.health.publish()
 
     def destroy_node(self) -> None:
+        self._preparer.stop()
         self._worker.stop()
         super().destroy_node()
 
