@@ -2,9 +2,11 @@
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 import re
+from typing import Any
 
 import cv2
 import numpy as np
@@ -198,15 +200,37 @@ def find_homography_sequences(root: str | Path) -> list[HomographySequence]:
 
 # ------------------------------------------------------------------------------- bags
 
-def open_bag(bag: str | Path):  # noqa: ANN201 - rosbags AnyReader (imported lazily)
-    """An (unopened) rosbags ``AnyReader`` on a rosbag2 folder or rosbag1 file."""
-    from rosbags.highlevel import AnyReader
+@contextmanager
+def open_bag(bag: str | Path) -> Iterator[Any]:
+    """A rosbags ``AnyReader`` opened on a rosbag2 folder or rosbag1 file (a context manager).
+
+    Raises:
+        DatasetError: the path does not exist, or the bag cannot be read (bad metadata, a
+            truncated or foreign storage file), when opening it or while reading its messages.
+    """
+    from rosbags.highlevel import AnyReader, AnyReaderError
+    from rosbags.rosbag1 import ReaderError as Rosbag1Error
+    from rosbags.rosbag2 import ReaderError as Rosbag2Error
+    from rosbags.serde import SerdeError
     from rosbags.typesys import Stores, get_typestore
 
     p = Path(bag)
     if not p.exists():
         raise DatasetError(f'bag not found: {p}')
-    return AnyReader([p], default_typestore=get_typestore(Stores.ROS2_JAZZY))
+    reader = AnyReader([p], default_typestore=get_typestore(Stores.ROS2_JAZZY))
+    broken = (AnyReaderError, Rosbag1Error, Rosbag2Error, SerdeError)
+    try:
+        reader.open()
+    except (*broken, OSError, KeyError) as exc:
+        raise DatasetError(f'cannot read bag {p} (broken or truncated?): '
+                           f'{" ".join(str(exc).split()) or type(exc).__name__}') from exc
+    try:
+        yield reader
+    except broken as exc:
+        raise DatasetError(f'cannot read bag {p} (broken or truncated?): '
+                           f'{" ".join(str(exc).split()) or type(exc).__name__}') from exc
+    finally:
+        reader.close()
 
 
 def topic_connections(reader, topic: str, msgtypes: Sequence[str] | None = None) -> list:  # noqa: ANN001

@@ -32,3 +32,7 @@ class OfflineConfigError(OfflineError, ValueError):
 
 class EvaluationError(OfflineError, ValueError):
     """Ground truth and estimate cannot be compared (too few common stamps, no motion)."""
+
+
+class NoFramesError(OfflineError, ValueError):
+    """Every frame read from the bag was rejected (e.g. no image decodes): no output."""

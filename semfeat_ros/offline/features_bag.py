@@ -28,7 +28,7 @@ from msg_adapters import features_to_msg, numpy_to_image, stamp_to_ns, to_rgb_or
 from msg_adapters.errors import MessageError
 from semfeat_ros.frontend import FrontendError
 from semfeat_ros.offline.bag import CAMERA_INFO_TYPE, POINTCLOUD2_TYPE, BagSource, one_line
-from semfeat_ros.offline.errors import OutputPathError
+from semfeat_ros.offline.errors import NoFramesError, OutputPathError
 from semfeat_ros.offline.frontends import NetworkFrontend
 from semfeat_ros.offline.mapping_run import CameraTimeline, read_cameras
 
@@ -152,6 +152,10 @@ def write_features_bag(source: BagSource, out: str | os.PathLike[str],
             writer.write(c_mask, m.log_ns, ts.serialize_cdr(mask, IMAGE_MSGTYPE))
             summary.frames_written += 1
             summary.keypoints_total += len(res)
+        if summary.frames_read and not summary.frames_written:
+            reasons = ', '.join(f'{k} x{v}' for k, v in summary.reject_reasons.items())
+            raise NoFramesError(f'no frame of {image_topic} could be processed: all '
+                                f'{summary.frames_read} read were rejected ({reasons})')
         ok = True
     finally:
         bar.close()

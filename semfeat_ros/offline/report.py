@@ -191,6 +191,8 @@ def write_map_outputs(run: MapRun, out_dir: Path, gt: tuple[np.ndarray, np.ndarr
               'run': summary, 'files': dict(FILES), **(extra or {})}
     if make_figures:
         result['figures'] = _figures(run, paths, gt, ev, floors.get('est_to_gt') or [])
+    result['files'] = {k: v for k, v in FILES.items()
+                       if k == 'metrics' or paths[k].is_file()}  # the files written
     with open(paths['metrics'], 'w', encoding='utf-8') as f:
         json.dump(json_safe(result), f, indent=2, sort_keys=False)
         f.write('\n')

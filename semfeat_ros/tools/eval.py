@@ -206,9 +206,22 @@ def cli(argv: list[str] | None = None) -> int:
     from semfeat_ros.evaluation.report import markdown_table
 
     sys.stdout.write(markdown_table(results))
-    print(f'\nwrote {Path(args.out) / "results.json"}, results.md, charts and '
-          f'{Path(args.out) / "matches"}/')
+    print(f'\nwrote {written_summary(Path(args.out))}')
     return 0
+
+
+def written_summary(out: Path) -> str:
+    """The outputs present in ``out``: results.json, results.md, the charts (PNG) and the
+    match figures (``matches/``), each named only when written."""
+    parts = [str(out / name) for name in ('results.json', 'results.md') if (out / name).is_file()]
+    charts = sorted(p.name for p in out.glob('*.png'))
+    if charts:
+        parts.append(f'{len(charts)} charts ({", ".join(charts)})')
+    figures = sorted((out / 'matches').glob('*.png')) if (out / 'matches').is_dir() else []
+    if figures:
+        parts.append(f'{len(figures)} match figures in {out / "matches"}/')
+    return ', '.join(parts) or 'nothing'
+
 
 
 if __name__ == '__main__':

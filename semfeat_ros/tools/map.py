@@ -32,11 +32,11 @@ from semfeat_ros.offline.config import (
     parse_overrides,
     read_node_params,
 )
-from semfeat_ros.offline.errors import OfflineConfigError, OfflineError
+from semfeat_ros.offline.errors import NoFramesError, OfflineConfigError, OfflineError
 from semfeat_ros.offline.frontends import OPENCV_BEARING_SIGMA_PX
 from semfeat_ros.offline.mapping_run import LABEL_SOURCES, MapConfig, Topics, run_mapping
 from semfeat_ros.offline.paths import prepare_out_dir
-from semfeat_ros.offline.report import FILES, output_paths, write_map_outputs
+from semfeat_ros.offline.report import output_paths, write_map_outputs
 
 PROG = 'semfeat-map'
 FRONTENDS = ('semfeat', 'orb', 'sift')
@@ -145,6 +145,11 @@ def main(conf: MapToolConfig, bag: Path, out: Path) -> dict[str, Any]:
         out_dir = prepare_out_dir(out)
         output_paths(out_dir)  # fail before the long run if an output would escape --out
         run = run_mapping(source, mc, progress=conf.progress)
+        read, rejected = run.counts['frames_read'], run.counts['frames_rejected']
+        if read and rejected == read:
+            raise NoFramesError(f'no frame of the bag could be processed: all {read} read were '
+                                'rejected (undecodable images or a size that does not match '
+                                'the CameraInfo)')
         gt = read_poses(source, mc.topics.ground_truth)
         views = read_depth_views(source, mc.topics.gt_depth, gt, mc.T_base_cam, run.camera)
     config = {'frontend': conf.frontend, 'labels': conf.labels, 'use_odometry': mc.use_odometry,
@@ -247,7 +252,7 @@ def cli(argv: Sequence[str] | None = None) -> int:
         print(f'{PROG}: interrupted', file=sys.stderr)
         return 130
     print(f'{PROG}: {metrics["run"]["frontend_description"]}; wrote '
-          f'{", ".join(FILES.values())} to {args.out}')
+          f'{", ".join(metrics["files"].values())} to {args.out}')
     if metrics.get('evaluation_error'):
         print(f'{PROG}: not evaluated: {metrics["evaluation_error"]}')
     print(format_table(metrics))

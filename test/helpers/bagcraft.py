@@ -12,10 +12,12 @@ CAMERA = '/camera/front/image_raw/compressed'
 
 
 def craft(src: Path, dst: Path, *, seconds: float, garbage_every: int = 0,
-          jump_back_s: float = 0.0, repeat_s: float = 0.0) -> dict[str, int]:
+          jump_back_s: float = 0.0, repeat_s: float = 0.0,
+          corrupt_all: bool = False) -> dict[str, int]:
     """Write ``dst`` from the first ``seconds`` of ``src``.
 
     ``garbage_every``: after every k-th camera frame add one whose JPEG is cut to a third.
+    ``corrupt_all``: every camera frame's JPEG is cut to a third (no frame decodes).
     ``repeat_s``/``jump_back_s``: then append the first ``repeat_s`` seconds again with header
     stamps moved back by ``jump_back_s`` relative to the end (log time keeps increasing, as after
     a bag loop on the sender), so the nodes see time going backwards.
@@ -38,6 +40,10 @@ def craft(src: Path, dst: Path, *, seconds: float, garbage_every: int = 0,
                 writer.write(out[c.topic], t, raw)
 
             for c, t, raw in rows:
+                if corrupt_all and c.topic == CAMERA:
+                    msg = TS.deserialize_cdr(raw, c.msgtype)
+                    msg.data = msg.data[: len(msg.data) // 3].copy()
+                    raw = bytes(TS.serialize_cdr(msg, c.msgtype))
                 write(c, t, raw)
                 if c.topic == CAMERA:
                     counts['frames'] += 1
