@@ -200,6 +200,25 @@ def test_resolve_message_class() -> None:
         resolve_message_class('Image')
 
 
+def test_resolve_message_class_imports_only_message_packages(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # a bag names its message types: a type whose package is an ordinary Python module must
+    # not be imported (importing runs its code)
+    marker = tmp_path / 'imported'
+    pkg = tmp_path / 'semfeat_probe_pkg'
+    (pkg / 'msg').mkdir(parents=True)
+    (pkg / '__init__.py').write_text(f'open({str(marker)!r}, "w").close()\n')
+    (pkg / 'msg' / '__init__.py').write_text('class Thing:\n    pass\n')
+    (tmp_path / 'semfeat_probe_mod.py').write_text(f'open({str(marker)!r}, "w").close()\n')
+    monkeypatch.syspath_prepend(str(tmp_path))
+    for name in ('semfeat_probe_pkg/msg/Thing', 'semfeat_probe_mod/msg/Thing',
+                 'os.path/msg/Thing', 'sensor_msgs/msg/__class__', '../x/msg/Thing'):
+        with pytest.raises(UnknownMessageTypeError):
+            resolve_message_class(name)
+    assert not marker.exists()
+    assert 'semfeat_probe_pkg' not in sys.modules
+
+
 def test_message_definition_from_installed_msg_files() -> None:
     """With a typestore that lacks the type, the share/<pkg>/msg files give the same definition
     and RIHS01 hash as rosbags' Jazzy store (nested types resolved recursively)."""

@@ -10,8 +10,10 @@ from __future__ import annotations
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 import importlib
+import importlib.util
 import os
 from pathlib import Path
+import re
 import struct
 import sys
 from typing import Any
@@ -150,9 +152,12 @@ def resolve_message_class(type_name: str) -> type:
     """Python message class of a ROS type name (``pkg/msg/Name`` or ``pkg/Name``).
 
     Uses ``rosidl_runtime_py.utilities.get_message`` when installed, else imports ``pkg.msg``.
+    Only a ROS interface package is imported (see :func:`is_message_package`): the type names
+    come from the bag, and importing an arbitrary module would run its code.
 
     Raises:
-        UnknownMessageTypeError: the name is malformed or its package is not installed.
+        UnknownMessageTypeError: the name is malformed or not a message of an installed ROS
+            interface package.
     """
     parts = type_name.split('/')
     if len(parts) == 2:
@@ -161,6 +166,14 @@ def resolve_message_class(type_name: str) -> type:
         raise UnknownMessageTypeError(
             f'message type {type_name!r} is malformed: expected "package/msg/Name"')
     pkg, _, name = parts
+    if not (_PACKAGE_NAME.fullmatch(pkg) and _TYPE_NAME.fullmatch(name)):
+        raise UnknownMessageTypeError(
+            f'message type {type_name!r} is malformed: expected a lower-case package name and '
+            'a CamelCase type name')
+    if not is_message_package(pkg):
+        raise UnknownMessageTypeError(
+            f'message type {type_name!r} is not installed: {pkg} is not a ROS interface '
+            'package')
     try:
         from rosidl_runtime_py.utilities import get_message
     except ImportError:
@@ -181,6 +194,28 @@ def resolve_message_class(type_name: str) -> type:
         raise UnknownMessageTypeError(
             f'message type {type_name!r} is not installed: {pkg}.msg has no class {name}')
     return cls
+
+
+_PACKAGE_NAME = re.compile(r'[a-z][a-z0-9_]*')
+_TYPE_NAME = re.compile(r'[A-Z][A-Za-z0-9]*')
+
+
+def is_message_package(pkg: str) -> bool:
+    """True when ``pkg`` is an installed ROS interface package, found without importing it: a
+    top-level package directory with a ``msg`` sub-package and the rosidl type support library
+    ``<pkg>_s__rosidl_typesupport_c*.so`` that rosidl generates."""
+    try:
+        spec = importlib.util.find_spec(pkg)  # a top-level name: nothing is executed
+    except (ImportError, ValueError):
+        return False
+    if spec is None or not spec.submodule_search_locations:
+        return False
+    for location in spec.submodule_search_locations:
+        d = Path(location)
+        if (d / 'msg' / '__init__.py').is_file() and any(
+                d.glob(f'{pkg}_s__rosidl_typesupport_c*.so')):
+            return True
+    return False
 
 
 def has_header_first(msg_cls: type) -> bool:
