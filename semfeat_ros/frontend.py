@@ -87,6 +87,18 @@ class SemanticFrontend:
         """Ready the network for ``width x height`` frames (see FeatureExtractor.prepare)."""
         self.extractor.prepare(width, height)
 
+    def check_size(self, camera: CameraModel, width: int, height: int) -> None:
+        """Raise FrontendError unless a ``width x height`` px frame fits ``camera`` (the same
+        aspect ratio, within ``size_tolerance``); cheap, so frames are checked before they are
+        decoded."""
+        if width <= 0 or height <= 0:
+            raise FrontendError(f'image is {width}x{height} px (empty)')
+        ratio = (camera.width / camera.height) / (width / height)
+        if abs(ratio - 1.0) > self.conf.size_tolerance:
+            raise FrontendError(
+                f'image is {width}x{height} px but CameraInfo describes '
+                f'{camera.width}x{camera.height} px (different aspect ratio)')
+
     def camera_for(self, camera: CameraModel, width: int, height: int) -> CameraModel:
         """``camera`` rescaled to a ``width x height`` frame (same lens, resized image).
 
@@ -96,11 +108,7 @@ class SemanticFrontend:
             return camera
         key = (camera, width, height)
         if key not in self._scaled:
-            ratio = (camera.width / camera.height) / (width / height)
-            if abs(ratio - 1.0) > self.conf.size_tolerance:
-                raise FrontendError(
-                    f'image is {width}x{height} px but CameraInfo describes '
-                    f'{camera.width}x{camera.height} px (different aspect ratio)')
+            self.check_size(camera, width, height)
             self._scaled = {key: camera.scaled(width, height)}
         return self._scaled[key]
 

@@ -280,3 +280,34 @@ def test_camera_sizes_neither_leak_sessions_nor_threads(ros_context,
         assert node.health.counters.rejected == 20 and node.health.counters.errors == 0
     finally:
         h.close()
+
+
+@pytest.mark.ros_domain(91)
+def test_frame_of_another_aspect_is_rejected_before_decoding(
+        ros_context, untrained_weights: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from semfeat_ros.nodes import feature_node
+
+    decoded: list[int] = []
+    real = feature_node.to_rgb_or_mono
+
+    def counting(msg, **kwargs):  # noqa: ANN001, ANN202
+        decoded.append(1)
+        return real(msg, **kwargs)
+
+    monkeypatch.setattr(feature_node, 'to_rgb_or_mono', counting)
+    h = Harness(untrained_weights, transport='compressed')
+    try:
+        assert h.wait(lambda: h.pub_img.get_subscription_count() > 0
+                      and h.pub_info.get_subscription_count() > 0)
+        h.send_info()
+        assert h.wait(lambda: h.node._camera is not None)
+        wide = np.zeros((500, 4000, 3), np.uint8)  # 4:1 against the camera's 5:4
+        h.pub_img.publish(numpy_to_compressed(wide, 'png', stamp_ns=5, frame_id='cam',
+                                              msg_cls=CompressedImage))
+        assert h.wait(lambda: h.node.health.counters.rejected == 1)
+        assert 'different aspect ratio' in h.node.health.last_error and decoded == []
+        h.pub_img.publish(numpy_to_compressed(frame(2), 'png', stamp_ns=6, frame_id='cam',
+                                              msg_cls=CompressedImage))
+        assert h.wait(lambda: len(h.features) >= 1) and decoded == [1]
+    finally:
+        h.close()

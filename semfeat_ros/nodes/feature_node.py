@@ -26,7 +26,7 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 
 from msg_adapters import camera_info_to_model, features_to_msg, numpy_to_image, stamp_to_ns
 from msg_adapters.errors import MessageError
-from msg_adapters.image import to_rgb_or_mono
+from msg_adapters.image import compressed_size, to_rgb_or_mono
 from semfeat_ros.camera import CameraModel
 from semfeat_ros.frontend import FrontendConfig, FrontendError, SemanticFrontend
 from semfeat_ros.labels import load_labels
@@ -204,17 +204,24 @@ class FeatureNode(Node):
 
     def _process(self, msg: Image | CompressedImage) -> None:
         t0 = wall_time()
-        try:
-            stamp_ns = stamp_to_ns(msg.header.stamp)
-            image = to_rgb_or_mono(msg, max_pixels=self.conf.max_image_pixels)
-        except MessageError as exc:
-            self.health.on_reject(f'image: {exc}')
-            return
         with self._camera_lock:
             camera = self._camera
         if camera is None and self.get_parameter('require_camera_info').value:
             self.health.on_waiting('no CameraInfo received yet on '
                                   f'{self.conf.camera_info_topic}; frame skipped')
+            return
+        try:
+            stamp_ns = stamp_to_ns(msg.header.stamp)
+            width, height = (compressed_size(msg)[1:] if isinstance(msg, CompressedImage)
+                             else (int(msg.width), int(msg.height)))
+            if camera is not None:  # from the headers: a frame that cannot fit is not decoded
+                self.frontend.check_size(camera, width, height)
+            image = to_rgb_or_mono(msg, max_pixels=self.conf.max_image_pixels)
+        except MessageError as exc:
+            self.health.on_reject(f'image: {exc}')
+            return
+        except FrontendError as exc:
+            self.health.on_reject(str(exc))
             return
         try:
             result = self.frontend.process(image, camera)
