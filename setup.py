@@ -23,6 +23,7 @@ CONSOLE_SCRIPTS = [
     'semfeat-map = semfeat_ros.tools.map:cli',
     'semfeat-colmap-peer = semfeat_ros.tools.colmap_peer:cli',
     'semfeat-bench = semfeat_ros.tools.bench:cli',
+    'semfeat-photos = semfeat_ros.tools.photos:cli',
 ]
 
 setup(
