@@ -110,9 +110,19 @@ def unpack_rgb(packed: np.ndarray) -> np.ndarray:
 
 # ----------------------------------------------------------------------------- validation
 
+def _array(name: str, values: Any) -> np.ndarray:
+    """``values`` as an array; ArrayShapeError (not numpy's bare ValueError) when it is ragged
+    or cannot be converted."""
+    try:
+        return np.asarray(values)
+    except (ValueError, TypeError) as exc:
+        raise ArrayShapeError(f'{name}: not a regular array ({" ".join(str(exc).split())})'
+                              ) from exc
+
+
 def _float_column(name: str, values: Any, tail: tuple[int, ...], n: int | None,
                   allow_nonfinite: bool) -> np.ndarray:
-    a = np.asarray(values)
+    a = _array(name, values)
     if a.dtype.kind not in 'fiub' or a.ndim != 1 + len(tail) or a.shape[1:] != tail or (
             n is not None and a.shape[0] != n):
         want = ('N' if n is None else str(n),) + tuple(str(t) for t in tail)
@@ -132,7 +142,7 @@ def _float_column(name: str, values: Any, tail: tuple[int, ...], n: int | None,
 
 def _integer_column(name: str, values: Any, tail: tuple[int, ...], n: int | None,
                     low: int, high: int, saturate: bool = False) -> np.ndarray:
-    a = np.asarray(values)
+    a = _array(name, values)
     if a.ndim != 1 + len(tail) or a.shape[1:] != tail or (n is not None and a.shape[0] != n):
         want = ('N' if n is None else str(n),) + tuple(str(t) for t in tail)
         raise ArrayShapeError(
@@ -185,7 +195,7 @@ def features_to_msg(keypoints: np.ndarray, scores: np.ndarray, labels: np.ndarra
                     allow_nonfinite: bool = False, typestore: Any | None = None) -> Any:
     """``/semfeat/features`` PointCloud2: keypoints (N, 2) px, scores (N,), labels (N,) 0..255,
     descriptors (N, D) (D >= 1; the D of an empty set is taken from its shape (0, D))."""
-    desc = np.asarray(descriptors)
+    desc = _array('descriptors', descriptors)
     if desc.ndim != 2 or desc.shape[1] < 1:
         raise ArrayShapeError(f'descriptors: expected shape (N, D) with D >= 1, got {desc.shape}')
     n, dim = desc.shape

@@ -282,3 +282,17 @@ def test_readers_reject_other_layouts() -> None:
                                  ('descriptor', '<f8', (4,))])
     with pytest.raises(LayoutMismatchError, match='descriptor'):
         features_from_msg(array_to_pointcloud2(doubles, stamp_ns=0, frame_id='c', msg_cls=TS))
+
+
+@pytest.mark.parametrize('bad', ['descriptors', 'keypoints', 'scores', 'labels'])
+def test_ragged_or_one_dimensional_inputs_raise_array_shape_errors(bad: str) -> None:
+    cols: dict[str, Any] = {'keypoints': np.zeros((2, 2)), 'scores': np.ones(2),
+                            'labels': np.zeros(2, np.uint8), 'descriptors': np.zeros((2, 4))}
+    for value in ([[1.0, 2.0], [3.0]], np.zeros(8)):  # ragged, 1-D
+        with pytest.raises(ArrayShapeError, match=bad):
+            features_to_msg(**{**cols, bad: value}, stamp_ns=1, frame_id='c',
+                            msg_cls=sensor_msgs.msg.PointCloud2)
+    with pytest.raises(ArrayShapeError, match='bearings'):
+        tracks_to_msg(np.zeros((2, 2)), [[1.0, 0.0, 0.0], [1.0]], np.zeros(2, np.uint8),
+                      np.zeros(2, np.uint32), np.zeros(2, np.uint16), np.ones(2), stamp_ns=1,
+                      frame_id='c', msg_cls=sensor_msgs.msg.PointCloud2)
