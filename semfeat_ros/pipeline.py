@@ -20,13 +20,16 @@ def frame_features(stamp_ns: int, keypoints: np.ndarray, descriptors: np.ndarray
                    labels: np.ndarray, scores: np.ndarray, camera: CameraModel,
                    frame_id: str = '') -> FrameFeatures:
     """A matcher input with unit bearings (N, 3) from ``camera``; keypoints without a bearing
-    (outside the image circle) are dropped. Binary (uint8) descriptors keep their type."""
+    (outside the image circle, non-finite) and rows with non-finite descriptors are dropped.
+    Binary (uint8) descriptors keep their type."""
     kp = np.asarray(keypoints, dtype=np.float64).reshape(-1, 2)
     bearings = camera.unproject(kp, check=False)
-    ok = np.isfinite(bearings).all(axis=1)
     desc = np.asarray(descriptors)
     if desc.dtype != np.uint8:
         desc = desc.astype(np.float32, copy=False)
+    ok = np.isfinite(bearings).all(axis=1)
+    if desc.dtype != np.uint8:
+        ok &= np.isfinite(desc.reshape(len(desc), -1)).all(axis=1)
     return FrameFeatures(
         stamp_ns=int(stamp_ns), keypoints=kp[ok].astype(np.float32),
         descriptors=desc[ok],

@@ -146,3 +146,45 @@ def test_extrinsic_points_camera_forward_and_down() -> None:
     assert optical_axis_in_base[0] > 0.9 and optical_axis_in_base[2] < 0  # forward, pitched down
     np.testing.assert_allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-12)
     assert 0.6 <= ext.height <= 0.9
+
+
+@pytest.mark.parametrize('cam', [
+    FisheyeCamera(640, 512, 186.7, 186.7, 320.0, 256.0, k=(0.02, -0.004, 0.0005, -0.0001),
+                  fov_deg=190),
+    PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0, d=(-0.2, 0.05, 0.001, 0.001, 0.0)),
+    PinholeCamera(640, 480, 500.0, 500.0, 320.0, 240.0,
+                  d=(-0.2, 0.05, 0.001, 0.001, 0.0, 0.1, 0.0, 0.0),
+                  model='rational_polynomial')])
+def test_non_finite_and_huge_inputs_are_invalid_without_warnings(cam) -> None:  # noqa: ANN001
+    import warnings
+
+    inf, nan = float('inf'), float('nan')
+    pixels = np.array([[300.0, 200.0], [inf, 1.0], [nan, 5.0], [1e308, 1e308], [-inf, -inf]])
+    points = np.array([[0.1, 0.2, 1.0], [inf, 0.0, 1.0], [nan, 0.0, 1.0],
+                       [1e308, 1e308, 1e-308], [0.0, 0.0, -inf]])
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')  # a RuntimeWarning would go raw into a node's log
+        rays = cam.unproject(pixels, check=False)
+        px, valid = cam.project(points)
+    assert np.isfinite(rays[0]).all() and np.isnan(rays[1:]).all()
+    np.testing.assert_allclose(rays[0], cam.unproject(pixels[:1])[0])
+    assert valid.tolist() == [True, False, False, False, False]
+    np.testing.assert_allclose(px[0], cam.project(points[:1])[0][0])
+    with pytest.raises(OutsideImageCircleError):
+        cam.unproject(pixels)  # checked: non-finite pixels have no bearing
+
+
+def test_frame_features_drops_non_finite_rows_without_warnings() -> None:
+    import warnings
+
+    from semfeat_ros.pipeline import frame_features
+
+    cam = FisheyeCamera(640, 512, 186.7, 186.7, 320.0, 256.0, fov_deg=190)
+    kp = np.array([[300.0, 200.0], [float('inf'), 1.0], [310.0, 210.0], [320.0, 220.0]])
+    desc = np.ones((4, 8), np.float32)
+    desc[2, 3] = float('nan')
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')
+        f = frame_features(1, kp, desc, np.zeros(4, np.uint8), np.ones(4), cam)
+    np.testing.assert_array_equal(f.keypoints, kp[[0, 3]].astype(np.float32))
+    assert np.isfinite(f.descriptors).all() and np.isfinite(f.bearings).all()

@@ -32,6 +32,20 @@ def _as_points(points: np.ndarray, dim: int, name: str) -> np.ndarray:
     return arr
 
 
+def _finite_rows(arr: np.ndarray, fill: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """``(rows, finite)``: ``arr`` with its non-finite rows replaced by ``fill`` (a harmless
+    value the caller computes with and then marks invalid) and the (N,) mask of finite rows."""
+    finite = np.isfinite(arr).all(axis=1)
+    if finite.all():
+        return arr, finite
+    return np.where(finite[:, None], arr, np.asarray(fill, dtype=np.float64)), finite
+
+
+# Huge finite inputs overflow to inf / NaN inside the models; those rows come out invalid (NaN
+# bearings, valid=False) and no RuntimeWarning reaches the caller's log.
+_QUIET = dict(over='ignore', invalid='ignore', divide='ignore', under='ignore')
+
+
 @dataclass(frozen=True)
 class CameraModel(ABC):
     """Common interface of all camera models (image size in px, intrinsics in px)."""
@@ -162,33 +176,37 @@ class FisheyeCamera(CameraModel):
         return 1.0 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
 
     def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        p = _as_points(points, 3, 'points')
-        rxy = np.hypot(p[:, 0], p[:, 1])
-        theta = np.arctan2(rxy, p[:, 2])
-        theta_d = self._theta_d(theta)
-        with np.errstate(invalid='ignore', divide='ignore'):
+        p, finite = _finite_rows(_as_points(points, 3, 'points'), (0.0, 0.0, 1.0))
+        with np.errstate(**_QUIET):
+            rxy = np.hypot(p[:, 0], p[:, 1])
+            theta = np.arctan2(rxy, p[:, 2])
+            theta_d = self._theta_d(theta)
             scale = np.where(rxy > 1e-12, theta_d / np.maximum(rxy, 1e-300), 0.0)
-        u = self.fx * p[:, 0] * scale + self.cx
-        v = self.fy * p[:, 1] * scale + self.cy
-        norm = np.linalg.norm(p, axis=1)
-        valid = (theta <= self._theta_max + 1e-12) & (norm > 1e-12) & np.isfinite(norm)
-        return np.stack([u, v], axis=1), valid
+            u = self.fx * p[:, 0] * scale + self.cx
+            v = self.fy * p[:, 1] * scale + self.cy
+            norm = np.linalg.norm(p, axis=1)
+        uv = np.stack([u, v], axis=1)
+        valid = ((theta <= self._theta_max + 1e-12) & (norm > 1e-12) & np.isfinite(norm)
+                 & finite & np.isfinite(uv).all(axis=1))
+        return uv, valid
 
     def unproject(self, pixels: np.ndarray, *, check: bool = True) -> np.ndarray:
-        px = _as_points(pixels, 2, 'pixels')
-        mx = (px[:, 0] - self.cx) / self.fx
-        my = (px[:, 1] - self.cy) / self.fy
-        theta_d = np.hypot(mx, my)
+        raw = _as_points(pixels, 2, 'pixels')
+        px, finite = _finite_rows(raw, (self.cx, self.cy))
+        with np.errstate(**_QUIET):
+            mx = (px[:, 0] - self.cx) / self.fx
+            my = (px[:, 1] - self.cy) / self.fy
+            theta_d = np.hypot(mx, my)
         theta_d_max = float(self._theta_d(np.array(self._theta_max)))
-        outside = ~(theta_d <= theta_d_max * (1.0 + 1e-9))
+        outside = ~(theta_d <= theta_d_max * (1.0 + 1e-9)) | ~finite
         if check and outside.any():
-            bad = px[np.argmax(outside)]
+            bad = raw[np.argmax(outside)]
             raise OutsideImageCircleError(
                 f'{int(outside.sum())} pixel(s) outside the image circle of the '
                 f'{self.fov_deg:.0f} deg lens, e.g. ({bad[0]:.1f}, {bad[1]:.1f}) px; '
                 f'radius there {theta_d[np.argmax(outside)] * self.fx:.1f} px > '
                 f'{theta_d_max * self.fx:.1f} px')
-        td = np.minimum(theta_d, theta_d_max)
+        td = np.where(outside, 0.0, np.minimum(theta_d, theta_d_max))
         theta = td.copy()
         for _ in range(_NEWTON_ITERS):
             step = (self._theta_d(theta) - td) / self._dtheta_d(theta)
@@ -196,9 +214,9 @@ class FisheyeCamera(CameraModel):
             if np.max(np.abs(step), initial=0.0) < 1e-14:
                 break
         np.clip(theta, 0.0, self._theta_max, out=theta)
-        with np.errstate(invalid='ignore', divide='ignore'):
+        with np.errstate(**_QUIET):
             s = np.where(theta_d > 1e-15, np.sin(theta) / np.maximum(theta_d, 1e-300), 1.0)
-        rays = np.stack([mx * s, my * s, np.cos(theta)], axis=1)
+            rays = np.stack([mx * s, my * s, np.cos(theta)], axis=1)
         rays[outside] = np.nan
         return rays
 
@@ -246,16 +264,37 @@ class PinholeCamera(CameraModel):
         return xd, yd
 
     def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        p = _as_points(points, 3, 'points')
+        p, finite = _finite_rows(_as_points(points, 3, 'points'), (0.0, 0.0, 1.0))
         z = p[:, 2]
-        valid = z > 1e-9
+        valid = (z > 1e-9) & finite
         zs = np.where(valid, z, 1.0)
-        xd, yd = self._distort(p[:, 0] / zs, p[:, 1] / zs)
-        px = np.stack([self.fx * xd + self.cx, self.fy * yd + self.cy], axis=1)
+        with np.errstate(**_QUIET):
+            xd, yd = self._distort(p[:, 0] / zs, p[:, 1] / zs)
+            px = np.stack([self.fx * xd + self.cx, self.fy * yd + self.cy], axis=1)
         return px, valid & np.isfinite(px).all(axis=1)
 
     def unproject(self, pixels: np.ndarray, *, check: bool = True) -> np.ndarray:
-        px = _as_points(pixels, 2, 'pixels')
+        raw = _as_points(pixels, 2, 'pixels')
+        px, finite = _finite_rows(raw, (self.cx, self.cy))
+        with np.errstate(**_QUIET):
+            x, y, xd, yd = self._undistort(px)
+        with np.errstate(**_QUIET):
+            fx_, fy_ = self._distort(x, y)
+            bad = ~((np.hypot(fx_ - xd, fy_ - yd) < 1e-6) & np.isfinite(x) & np.isfinite(y)
+                    & finite)
+        if check and bad.any():
+            b = raw[np.argmax(bad)]
+            raise OutsideImageCircleError(
+                f'{int(bad.sum())} pixel(s) cannot be undistorted (outside the valid region '
+                f'of the {self.model} model), e.g. ({b[0]:.1f}, {b[1]:.1f}) px')
+        x, y = np.where(bad, 0.0, x), np.where(bad, 0.0, y)
+        rays = np.stack([x, y, np.ones_like(x)], axis=1)
+        rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+        rays[bad] = np.nan
+        return rays
+
+    def _undistort(self, px: np.ndarray) -> tuple[np.ndarray, ...]:
+        """``(x, y, xd, yd)``: undistorted and distorted normalised coordinates of pixels."""
         xd = (px[:, 0] - self.cx) / self.fx
         yd = (px[:, 1] - self.cy) / self.fy
         x, y = xd.copy(), yd.copy()
@@ -276,14 +315,4 @@ class PinholeCamera(CameraModel):
             y -= dy
             if max(np.max(np.abs(dx), initial=0.0), np.max(np.abs(dy), initial=0.0)) < 1e-13:
                 break
-        fx_, fy_ = self._distort(x, y)
-        bad = ~((np.hypot(fx_ - xd, fy_ - yd) < 1e-6) & np.isfinite(x) & np.isfinite(y))
-        if check and bad.any():
-            b = px[np.argmax(bad)]
-            raise OutsideImageCircleError(
-                f'{int(bad.sum())} pixel(s) cannot be undistorted (outside the valid region '
-                f'of the {self.model} model), e.g. ({b[0]:.1f}, {b[1]:.1f}) px')
-        rays = np.stack([x, y, np.ones_like(x)], axis=1)
-        rays /= np.linalg.norm(rays, axis=1, keepdims=True)
-        rays[bad] = np.nan
-        return rays
+        return x, y, xd, yd
