@@ -11,9 +11,21 @@ from test_model_train import _conf, shards  # noqa: F401 - the module's shard fi
 import torch
 import torch.nn.functional as F  # noqa: N812 - the usual torch alias
 
+from semfeat_ros.model.data import (
+    PairGenerator,
+    apply_h,
+    default_data_conf,
+    load_photo_frames,
+    resolve_photo_paths,
+)
 from semfeat_ros.model.errors import ModelConfigError, ModelInputError
 from semfeat_ros.model.losses import distill_descriptor_loss, distill_keypoint_loss
-from semfeat_ros.model.teachers import TeacherUnavailableError, XFeatTeacher, load_teacher
+from semfeat_ros.model.teachers import (
+    AlikedScoreTeacher,
+    TeacherUnavailableError,
+    XFeatTeacher,
+    load_teacher,
+)
 from semfeat_ros.model.training import load_train_conf, main
 from semfeat_ros.model.weights_io import load_weights
 
@@ -128,3 +140,46 @@ def test_training_with_the_teacher_pulls_descriptors_into_its_space(
     _, meta = load_weights(tmp_path / 'run')
     assert meta['training']['teacher'] == 'xfeat'
     assert 'XFeat' in (tmp_path / 'export' / 'MODEL_CARD.md').read_text()
+
+
+def test_fisheye_photo_frames_keep_pairs_inside_the_photo(tmp_path: Path) -> None:
+    conf = {'frame_long_side': 160, 'crop_size': [64, 64], 'num_points': 64,
+            'photo_adaptation': 2, 'pair_mix': {'photo': 1.0}, 'photo_fisheye_views': 1,
+            'photos': ['module:skimage/data/astronaut.png']}
+    gen = PairGenerator([], conf, seed=0)
+    plain, fish = (gen.frames[i] for i in gen.photo_frames)
+    assert plain.mask is None and fish.mask is not None and fish.name.endswith('#fisheye0')
+    assert fish.rgb.shape == (128, 160, 3)  # the front camera's aspect at frame_long_side
+    assert 0.2 < fish.mask.mean() < 0.9 and (fish.rgb[~fish.mask] == 0).all()
+    assert (fish.score[~fish.mask] == 0).all()
+    checked = 0
+    for key in range(12):
+        rng = np.random.default_rng([0, key])
+        pair = gen.make_pair(rng)
+        if pair.frame_a is not fish:
+            continue
+        s = gen.build(pair, rng, augment=False)
+        v = s['corr_valid']
+        src = apply_h(np.linalg.inv(pair.H_a), s['points_a'][v])
+        inside = fish.mask[np.rint(src[:, 1]).astype(int), np.rint(src[:, 0]).astype(int)]
+        assert inside.all()  # every correspondence lies on the photo
+        assert (s['cov_a'] == (pair.view_a['coverage'] > 0)).all()
+        checked += 1
+    assert checked >= 2
+
+
+def test_aliked_photo_scores_are_cached_and_scaled(tmp_path: Path) -> None:
+    paths = resolve_photo_paths(['module:skimage/data/coffee.png'])
+    conf = {'photo_score': 'aliked', 'photo_score_cache': str(tmp_path / 'cache')}
+    first = load_photo_frames(paths, 160, 2, 0, conf)[0]
+    assert len(list((tmp_path / 'cache').glob('aliked_*.npy'))) == 1
+    again = load_photo_frames(paths, 160, 2, 0, conf)[0]
+    np.testing.assert_allclose(first.score, again.score, rtol=1e-3, atol=1e-5)
+    raw = AlikedScoreTeacher()(first.rgb)
+    # candidates (score >= kp_image_threshold) are exactly ALIKED's detections (>= 0.2)
+    above = first.score >= default_data_conf['kp_image_threshold']
+    near = np.abs(raw - AlikedScoreTeacher.threshold) < 2e-3  # float16 cache rounding
+    assert above.any() and np.array_equal(above[~near],
+                                          (raw >= AlikedScoreTeacher.threshold)[~near])
+    with pytest.raises(ModelConfigError, match='photo_score'):
+        load_photo_frames(paths, 160, 2, 0, {'photo_score': 'superpoint'})

@@ -46,6 +46,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+from tqdm import tqdm
 
 from semfeat_ros.labels import IGNORE_LABEL, LabelSet, load_labels
 from semfeat_ros.model.errors import DatasetError, ModelConfigError
@@ -74,6 +75,14 @@ default_data_conf: dict[str, Any] = {
     'photos': ['module:gtsam/Data/Balbianello/*.jpg',
                'module:matplotlib/mpl-data/sample_data/grace_hopper.jpg'],  # real photos
     'photo_adaptation': 16,  # homographies of the homographic adaptation of photo keypoints
+    'photo_score': 'corners',  # photos' keypoint-candidate score: 'corners' (homographically
+    #                            adapted Shi-Tomasi) or 'aliked' (ALIKED's score map, a real-image
+    #                            teacher; candidates where it exceeds ALIKED's threshold 0.2)
+    'photo_score_cache': None,  # directory of cached 'aliked' score maps (relative to the cwd;
+    #                             None: computed at every start, ~0.7 s a photo)
+    'photo_fisheye_views': 0,  # per photo, this many more frames showing it through the front
+    #                            fisheye camera (semfeat_ros.model.photo_fisheye) at the rendered
+    #                            frames' size (frame_long_side, the camera's aspect)
     'photometric': {
         'gain': [0.6, 1.4],  # multiplicative brightness
         'contrast': [0.7, 1.3],  # contrast around the mean
@@ -144,6 +153,8 @@ class Frame:
         static: (H, W) bool pixels whose correspondences are valid across frames (labelled and
             not a moving agent of the shard's ``moving_instances``); None for photos.
         score: optional (H, W) float32 precomputed corner score (photos: adapted).
+        mask: photos only: optional (H, W) bool pixels that show the photograph (a fisheye
+            view of a photo covers part of the frame); None: every pixel.
         candidates: cache of :func:`frame_candidates` (K, 2) float px.
         name: source description (shard path + index, or photo path).
     """
@@ -157,6 +168,7 @@ class Frame:
     static: np.ndarray | None = None
     score: np.ndarray | None = None
     candidates: np.ndarray | None = None
+    mask: np.ndarray | None = None
     name: str = ''
 
     @property
@@ -241,11 +253,62 @@ def resolve_photo_paths(patterns: Sequence[str], strict: bool = False) -> list[P
     return sorted(out)
 
 
+class _AlikedScores:
+    """ALIKED score maps (:class:`semfeat_ros.model.teachers.AlikedScoreTeacher`) scaled to the
+    corner-score units (``>= kp_image_threshold`` where ALIKED detects), cached by image hash."""
+
+    def __init__(self, image_threshold: float, cache: Path | None) -> None:
+        self.scale = image_threshold
+        self.cache = cache
+        self.teacher: Any = None
+
+    def __call__(self, rgb: np.ndarray) -> np.ndarray:
+        import hashlib
+        key = hashlib.sha1(rgb.tobytes() + repr(rgb.shape).encode()).hexdigest()
+        path = None if self.cache is None else self.cache / f'aliked_{key}.npy'
+        if path is not None and path.is_file():
+            score = np.load(path, allow_pickle=False).astype(np.float32)
+        else:
+            if self.teacher is None:
+                from semfeat_ros.model.teachers import AlikedScoreTeacher
+                self.teacher = AlikedScoreTeacher()
+            score = self.teacher(rgb)
+            if path is not None:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                tmp = path.with_suffix('.tmp.npy')
+                np.save(tmp, score.astype(np.float16), allow_pickle=False)
+                tmp.replace(path)
+        from semfeat_ros.model.teachers import AlikedScoreTeacher
+        return score * np.float32(self.scale / AlikedScoreTeacher.threshold)
+
+
 def load_photo_frames(paths: Sequence[Path], long_side: int, adaptation: int,
-                      seed: int) -> list[Frame]:
-    """Real photographs as label-free frames with homographically adapted corner scores."""
+                      seed: int, conf: dict[str, Any] | None = None,
+                      progress: bool = False) -> list[Frame]:
+    """Real photographs as label-free frames with keypoint-candidate scores.
+
+    Each photo gives a frame at ``long_side`` px and ``photo_fisheye_views`` frames of it seen
+    through the front fisheye camera (masked to where the photo lands). Scores: ``photo_score``
+    of ``conf`` (keys of :data:`default_data_conf`; default: adapted corners).
+    """
+    c = merge_conf(default_data_conf, conf, 'data')
+    scorer = None
+    if c['photo_score'] == 'aliked':
+        cache = c['photo_score_cache']
+        scorer = _AlikedScores(float(c['kp_image_threshold']),
+                               None if cache is None else Path(cache))
+    elif c['photo_score'] != 'corners':
+        raise ModelConfigError(f"data.photo_score must be 'corners' or 'aliked', got "
+                               f"{c['photo_score']!r}")
+    views = int(c['photo_fisheye_views'])
+    camera = None
+    if views > 0:
+        from semfeat_ros.camera import load_camera_yaml
+        from semfeat_ros.model.photo_fisheye import fisheye_view
+        cam = load_camera_yaml()[0]
+        camera = cam.scaled(*_target_size(cam.width, cam.height, long_side))
     frames = []
-    for k, p in enumerate(paths):
+    for k, p in enumerate(tqdm(paths, desc='photos', disable=not progress, leave=False)):
         bgr = cv2.imread(str(p), cv2.IMREAD_COLOR)
         if bgr is None:
             raise DatasetError(f'photo {p}: unreadable image')
@@ -255,10 +318,20 @@ def load_photo_frames(paths: Sequence[Path], long_side: int, adaptation: int,
         if (tw, th) != (w, h):
             rgb = cv2.resize(rgb, (tw, th), interpolation=cv2.INTER_AREA if tw < w
                              else cv2.INTER_LINEAR)
-        label = np.full((th, tw), IGNORE_LABEL, np.uint8)
-        rng = np.random.default_rng([seed, 7919, k])
-        frames.append(Frame(rgb=rgb, label=label, score=adapted_corner_score(rgb, adaptation, rng),
-                            name=str(p)))
+        shown: list[tuple[np.ndarray, np.ndarray | None, str]] = [(rgb, None, str(p))]
+        for j in range(views):
+            img, mask = fisheye_view(rgb, camera, np.random.default_rng([seed, 6151, k, j]))
+            shown.append((img, mask, f'{p}#fisheye{j}'))
+        for i, (img, mask, name) in enumerate(shown):
+            label = np.full(img.shape[:2], IGNORE_LABEL, np.uint8)
+            if scorer is not None:
+                score = scorer(img)
+            else:
+                rng = np.random.default_rng([seed, 7919, k] + ([i] if i else []))
+                score = adapted_corner_score(img, adaptation, rng)
+            if mask is not None:
+                score = np.where(mask, score, 0.0).astype(np.float32)
+            frames.append(Frame(rgb=img, label=label, score=score, mask=mask, name=name))
     return frames
 
 
@@ -314,8 +387,9 @@ def render_view(frame: Frame, H: np.ndarray, size: tuple[int, int]) -> dict[str,
         out['instance'] = cv2.warpPerspective(frame.instance.astype(np.float32), H, (w, h),
                                               flags=cv2.INTER_NEAREST,
                                               borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    out['coverage'] = cv2.warpPerspective(np.ones(frame.label.shape, np.uint8), H, (w, h),
-                                          flags=cv2.INTER_NEAREST,
+    shown = np.ones(frame.label.shape, np.uint8) if frame.mask is None else \
+        frame.mask.astype(np.uint8)
+    out['coverage'] = cv2.warpPerspective(shown, H, (w, h), flags=cv2.INTER_NEAREST,
                                           borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     if frame.score is not None:
         out['score'] = cv2.warpPerspective(frame.score, H, (w, h), flags=cv2.INTER_LINEAR,
@@ -370,6 +444,8 @@ class PairSample:
             wa, ha = fa.size
             valid = finite & (src_a[:, 0] >= 0) & (src_a[:, 0] <= wa - 1) & \
                 (src_a[:, 1] >= 0) & (src_a[:, 1] <= ha - 1)
+            if fa.mask is not None:
+                valid &= _nearest(fa.mask, src_a, 0) > 0
         else:
             lab = _nearest(fa.label, src_a, IGNORE_LABEL).astype(np.int64)
             valid = finite & (lab != IGNORE_LABEL)
@@ -644,10 +720,12 @@ class PairGenerator:
         seed: base seed of all randomness.
         use_photos: load the real photos of ``conf['photos']``.
         labels: class table (default: the shipped labels.yaml).
+        progress: show a progress bar while the photos load (teacher scores take time).
     """
 
     def __init__(self, shards: Sequence[str | Path], conf: dict[str, Any] | None = None,
-                 seed: int = 0, use_photos: bool = True, labels: LabelSet | None = None) -> None:
+                 seed: int = 0, use_photos: bool = True, labels: LabelSet | None = None,
+                 progress: bool = False) -> None:
         self.conf = c = merge_conf(default_data_conf, conf, 'data')
         self.seed = int(seed)
         self.labels = labels or load_labels()
@@ -670,7 +748,8 @@ class PairGenerator:
             paths = resolve_photo_paths(c['photos'], strict=True)
             base = len(self.frames)
             self.frames += load_photo_frames(paths, int(c['frame_long_side']),
-                                             int(c['photo_adaptation']), self.seed)
+                                             int(c['photo_adaptation']), self.seed, c,
+                                             progress=progress)
             self.photo_frames = list(range(base, len(self.frames)))
         mix = {k: float(v) for k, v in c['pair_mix'].items()}
         if set(mix) - set(PAIR_KINDS) or any(v < 0 for v in mix.values()):
@@ -698,16 +777,18 @@ class PairGenerator:
     # -- pair construction
 
     def _crop_origin(self, frame: Frame, rng: np.random.Generator) -> np.ndarray:
-        """Top-left (x, y) of a crop with enough labelled pixels (photos: anywhere)."""
+        """Top-left (x, y) of a crop with enough labelled pixels (photos: enough of the photo;
+        anywhere when it fills the frame)."""
         W, H = frame.size
         w, h = self.size
         best, best_frac = np.array([max(0, (W - w) // 2), max(0, (H - h) // 2)], float), -1.0
         for _ in range(8):
             o = np.array([rng.uniform(0, max(W - w, 0)), rng.uniform(0, max(H - h, 0))])
-            if frame.is_photo:
+            if frame.is_photo and frame.mask is None:
                 return np.floor(o)
             ox, oy = int(o[0]), int(o[1])
-            frac = float((frame.label[oy:oy + h, ox:ox + w] != IGNORE_LABEL).mean())
+            shown = frame.mask if frame.is_photo else frame.label != IGNORE_LABEL
+            frac = float(shown[oy:oy + h, ox:ox + w].mean())
             if frac >= self.conf['min_valid_fraction']:
                 return np.floor(o)
             if frac > best_frac:

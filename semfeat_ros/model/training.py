@@ -514,7 +514,8 @@ def main(conf: dict[str, Any], out: Path, *, resume: bool = False, export: Path 
         raise DatasetError(f'training and validation shards share world seeds '
                            f'{sorted(set(train_seeds) & set(val_seeds))}')
     check_render_sizes(train_paths, val_paths, 'validation')
-    gen = PairGenerator(train_paths, c['data'], seed=c['seed'], use_photos=True, labels=labels)
+    gen = PairGenerator(train_paths, c['data'], seed=c['seed'], use_photos=True, labels=labels,
+                        progress=progress)
     val_size = gen.frames[gen.sim_frames[0]].size if gen.sim_frames else None
     vgen_conf = {**c['data'], 'pair_mix': c['val_mix']}
     vgen = PairGenerator(val_paths, vgen_conf, seed=c['seed'] + 1, use_photos=False,
