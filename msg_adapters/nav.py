@@ -31,7 +31,8 @@ STATUS_NO_FIX = -1
 def quaternion_to_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
     """3x3 rotation of a quaternion (normalised first); a zero quaternion raises."""
     q = np.array([x, y, z, w], dtype=np.float64)
-    n = np.linalg.norm(q)
+    big = float(np.max(np.abs(q)))  # scaled first: huge finite values do not overflow
+    n = float(np.linalg.norm(q / big)) * big if np.isfinite(big) and big > 0 else 0.0
     if not np.isfinite(n) or n < 1e-9:
         raise NonFiniteError(f'orientation: quaternion {q.tolist()} has no rotation '
                              '(zero or non-finite norm)')
@@ -200,13 +201,16 @@ class GnssSample:
 
 
 def navsatfix_to_numpy(msg: Any) -> GnssSample:
-    """Read a ``sensor_msgs/NavSatFix`` (either flavour); latitude must be within +-90 deg."""
+    """Read a ``sensor_msgs/NavSatFix`` (either flavour); latitude must be within +-90 deg and
+    longitude within +-180 deg (when finite)."""
     cov = np.asarray(msg.position_covariance, dtype=np.float64)
     if cov.size != 9:
         raise ValueRangeError(f'position_covariance: expected 9 values, got {cov.size}')
     lat, lon, alt = float(msg.latitude), float(msg.longitude), float(msg.altitude)
     if np.isfinite(lat) and not -90.0 <= lat <= 90.0:
         raise ValueRangeError(f'latitude: expected -90..90 deg, got {lat}')
+    if np.isfinite(lon) and not -180.0 <= lon <= 180.0:
+        raise ValueRangeError(f'longitude: expected -180..180 deg, got {lon}')
     known = int(msg.position_covariance_type) != COVARIANCE_TYPE_UNKNOWN
     return GnssSample(stamp_ns=stamp_to_ns(msg), frame_id=str(msg.header.frame_id),
                       latitude=lat, longitude=lon, altitude=alt,

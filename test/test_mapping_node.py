@@ -248,7 +248,7 @@ def call_save_map(h: Harness) -> Trigger.Response:
     return future.result()
 
 
-@pytest.mark.ros_domain(82)
+@pytest.mark.ros_domain(68)
 def test_save_map_service_never_writes_through_symlinks(isolated_ros, tmp_path: Path) -> None:
     out, outside = tmp_path / 'map', tmp_path / 'outside'
     out.mkdir()
