@@ -127,6 +127,8 @@ def test_cli_smoke_writes_document_figures_and_results(
     soak = res['soak']
     assert soak['frames'] >= 1 and soak['samples'] >= 2
     assert len(soak['series']['rss_mb']) == soak['samples']
+    assert len(soak['series']['frame_ms']) == len(soak['series']['frame_t_min']) >= 1
+    assert 'frame_ms_slope_after_warmup_per_min' in soak
     assert res['isam2']['keyframes'] >= 9
     assert 'forward' not in res
     assert res['machine']['load_average_end'] and res['machine']['usable_cpus'] >= 1
@@ -135,6 +137,7 @@ def test_cli_smoke_writes_document_figures_and_results(
     for needle in ('# Benchmarks', '## Machine', '### 640x512', '### 160x128',
                    '### Ratios', '## End-to-end sustained rate', '## Soak',
                    '## iSAM2 update time', 'img/bench_isam2.png', 'img/bench_soak.png',
+                   'frame time slope',
                    'semfeat-bench --out'):
         assert needle in text, needle
     p50 = res['stages']['640x512']['stats']['orb']['features']['p50']

@@ -770,16 +770,24 @@ def measure_end_to_end(replay: Replay, mc: Any, kind: str, max_frames: int | Non
 def soak(replay: Replay, mc: Any, minutes: float, progress: bool,
          period_s: float | None = None) -> dict[str, Any]:
     """Replay the bag in a loop through one persistent network pipeline for ``minutes`` of
-    wall time, sampling the process's CPU % and RSS (``/proc/self``)."""
+    wall time, sampling the process's CPU % and RSS (``/proc/self``) and recording every
+    mapped frame's time; reports the linear slopes of RSS (MB/min) and frame time (ms/min),
+    over the whole soak and after the warm-up."""
     pipe = ReplayPipeline(replay, mc, 'semfeat')
     duration = minutes * 60.0
     period = period_s if period_s is not None else min(1.0, max(0.05, duration / 30.0))
     loops = 0
     bar = tqdm(total=round(duration), desc='soak', unit='s', disable=not progress)
     shown = 0
+    frame_t: list[float] = []  # min since the start, of each mapped frame
+    frame_ms: list[float] = []
 
     def tick() -> None:
         nonlocal shown
+        times = pipe.times['frame']
+        while len(frame_ms) < len(times):
+            frame_ms.append(times[len(frame_ms)])
+            frame_t.append((time.perf_counter() - t_start) / 60.0)
         elapsed = min(int(time.perf_counter() - t_start), round(duration))
         if elapsed > shown:
             bar.update(elapsed - shown)
@@ -797,6 +805,7 @@ def soak(replay: Replay, mc: Any, minutes: float, progress: bool,
     cpu = np.asarray(sampler.cpu_pct)
     warm = min(1.0, 0.2 * minutes)
     late = t >= warm
+    ft, fms = np.asarray(frame_t), np.asarray(frame_ms)
     return {
         'minutes': minutes, 'wall_s': wall, 'frames': pipe.frames, 'loops_completed': loops,
         'frames_rejected': pipe.rejected, 'keyframes': pipe.keyframes,
@@ -809,8 +818,11 @@ def soak(replay: Replay, mc: Any, minutes: float, progress: bool,
                    'max': float(rss.max()) if rss.size else None},
         'rss_slope_mb_per_min': linear_slope(t, rss),
         'rss_slope_after_warmup_mb_per_min': linear_slope(t[late], rss[late]),
+        'frame_ms_slope_per_min': linear_slope(ft, fms),
+        'frame_ms_slope_after_warmup_per_min': linear_slope(ft[ft >= warm], fms[ft >= warm]),
         'warmup_min': warm,
-        'series': {'t_min': t.tolist(), 'rss_mb': rss.tolist(), 'cpu_pct': cpu.tolist()},
+        'series': {'t_min': t.tolist(), 'rss_mb': rss.tolist(), 'cpu_pct': cpu.tolist(),
+                   'frame_t_min': ft.tolist(), 'frame_ms': fms.tolist()},
     }
 
 # ----------------------------------------------------------------------------------- iSAM2
@@ -1141,6 +1153,9 @@ def render_document(results: dict[str, Any], img_rel: str) -> str:
               f'{_f(sk["rss_slope_mb_per_min"], 3)} MB/min |',
               f'| RSS slope after the first {sk["warmup_min"]:g} min | '
               f'{_f(sk["rss_slope_after_warmup_mb_per_min"], 3)} MB/min |',
+              f'| frame time slope (linear fit, whole soak / after the first '
+              f'{sk["warmup_min"]:g} min) | {_f(sk.get("frame_ms_slope_per_min"), 3)} / '
+              f'{_f(sk.get("frame_ms_slope_after_warmup_per_min"), 3)} ms/min |',
               f'| frames rejected | {sk["frames_rejected"]} |', '',
               f'![soak]({img_rel}/bench_soak.png)', '']
     else:
@@ -1386,7 +1401,12 @@ def cli(argv: Sequence[str] | None = None) -> int:
     print(f'{PROG}: end-to-end ' + ', '.join(
         f'{fe} {_f(e2e[fe]["sustained_hz"], 2)} Hz' for fe in FRONTENDS))
     if res['soak']:
-        print(f'{PROG}: soak RSS slope {_f(res["soak"]["rss_slope_mb_per_min"], 2)} MB/min')
+        sk = res['soak']
+        print(f'{PROG}: soak {sk["minutes"]:g} min: RSS slope '
+              f'{_f(sk["rss_slope_mb_per_min"], 2)} MB/min (after warm-up '
+              f'{_f(sk["rss_slope_after_warmup_mb_per_min"], 2)}), frame time slope '
+              f'{_f(sk["frame_ms_slope_per_min"], 2)} ms/min (after warm-up '
+              f'{_f(sk["frame_ms_slope_after_warmup_per_min"], 2)})')
     print(f'{PROG}: wrote {paths.doc} and {paths.out / "results.json"}')
     return 0
 
