@@ -18,7 +18,7 @@ A command, not a test: it measures, in one process and one run,
    ``semfeat-map``, configured from the nodes' YAML files), with the mapping update time;
 3. a soak: the bag replayed in a loop through one persistent in-process pipeline for
    ``--soak-minutes``, sampling the process's CPU % and RSS every second (``/proc``), with the
-   RSS slope (MB/min, least squares);
+   RSS slope (MB/min) and the frame-time slope (ms/min), least squares;
 4. the iSAM2 update time against the keyframe count
    (:func:`semfeat_ros.mapping.benchmark.benchmark_update_time`);
 5. the pure network forward variants (:func:`semfeat_ros.model.benchmark.time_forward`).
