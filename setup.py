@@ -24,6 +24,7 @@ CONSOLE_SCRIPTS = [
     'semfeat-colmap-peer = semfeat_ros.tools.colmap_peer:cli',
     'semfeat-bench = semfeat_ros.tools.bench:cli',
     'semfeat-photos = semfeat_ros.tools.photos:cli',
+    'semfeat-batch = semfeat_ros.tools.batch:cli',
 ]
 
 setup(
