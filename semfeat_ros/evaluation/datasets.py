@@ -4,14 +4,17 @@ from __future__ import annotations
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
+from fnmatch import fnmatchcase
 from pathlib import Path
 import re
 from typing import Any
+from xml.etree import ElementTree
 
 import cv2
 import numpy as np
 
 from semfeat_ros.evaluation.errors import (
+    CameraFileError,
     DatasetError,
     HomographyFileError,
     ImageReadError,
@@ -87,15 +90,83 @@ def read_keypoint_file(path: str | Path) -> np.ndarray:
     return arr[:, :2]
 
 
-def list_images(folder: str | Path) -> list[Path]:
-    """Sorted image files of ``folder`` (not recursive); :class:`DatasetError` if none."""
+def natural_key(name: str) -> tuple[tuple[int, int | str], ...]:
+    """Sort key of a file name with its digit runs compared as numbers (``frame_2`` before
+    ``frame_10``; ``image.0002`` before ``image.0010`` as in plain sorting)."""
+    return tuple((0, int(part)) if part.isdigit() else (1, part.lower())
+                 for part in re.split(r'(\d+)', name) if part)
+
+
+@dataclass(frozen=True)
+class PinholeIntrinsics:
+    """Pinhole intrinsics (px) with an optional radial coefficient ``k1`` (OpenCV plumb_bob
+    order, on normalised undistorted coordinates: ``u = cx + fx x (1 + k1 r^2)``)."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    k1: float = 0.0
+    source: str = ''
+
+    def camera(self, width: int, height: int) -> object:
+        """The ``semfeat_ros.camera.PinholeCamera`` of these intrinsics on ``width x height``
+        px images (``CameraModelError`` when the principal point lies outside them)."""
+        from semfeat_ros.camera import PinholeCamera
+
+        return PinholeCamera(width, height, self.fx, self.fy, self.cx, self.cy, d=(self.k1,))
+
+
+_VISP_KEYS: tuple[str, ...] = ('px', 'py', 'u0', 'v0')
+
+
+def read_visp_camera_xml(path: str | Path) -> PinholeIntrinsics:
+    """Intrinsics of a ViSP XML file: the first element (document order) with ``px``, ``py``,
+    ``u0``, ``v0`` children (px), i.e. the ``<camera>`` block of a model-based tracker
+    configuration (``mbt-depth/castel/chateau.xml``) or a ``<camera><model>`` block of
+    ``vpXmlParserCamera``. ViSP's ``kud`` (distortion applied to undistorted coordinates,
+    ``u = u0 + px x (1 + kud r^2)``) becomes ``k1`` when present.
+
+    Raises:
+        CameraFileError: missing or unparsable file, no such element, or non-numeric values.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise CameraFileError(f'camera XML not found: {p}')
+    try:
+        root = ElementTree.parse(p).getroot()
+    except (ElementTree.ParseError, OSError) as exc:
+        raise CameraFileError(f'camera XML {p}: cannot parse ({exc})') from exc
+    for node in root.iter():
+        children = {c.tag: (c.text or '').strip() for c in node}
+        if not all(k in children for k in _VISP_KEYS):
+            continue
+        try:
+            vals = [float(children[k]) for k in (*_VISP_KEYS, 'kud') if k in children]
+        except ValueError as exc:
+            raise CameraFileError(f'camera XML {p}: <{node.tag}> has a non-numeric value '
+                                  f'({exc})') from exc
+        if not np.isfinite(vals).all():
+            raise CameraFileError(f'camera XML {p}: <{node.tag}> has a non-finite value')
+        return PinholeIntrinsics(*vals[:4], k1=vals[4] if len(vals) > 4 else 0.0,
+                                 source=f'{p} <{node.tag}>')
+    raise CameraFileError(f'camera XML {p}: no element with <px>, <py>, <u0>, <v0> children')
+
+
+def list_images(folder: str | Path, *, pattern: str = '*', natural: bool = False) -> list[Path]:
+    """Image files of ``folder`` (not recursive) whose name matches the glob ``pattern``, sorted
+    by name (``natural``: digit runs as numbers, :func:`natural_key`); :class:`DatasetError` if
+    there is none. Files with other extensions (e.g. ``depth_*.bin``) are never listed."""
     d = Path(folder)
     if not d.is_dir():
         raise DatasetError(f'image folder not found: {d}')
-    files = sorted(p for p in d.iterdir()
-                   if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS)
+    files = sorted((p for p in d.iterdir()
+                    if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS
+                    and fnmatchcase(p.name, pattern)),
+                   key=(lambda p: natural_key(p.name)) if natural else None)
     if not files:
-        raise DatasetError(f'no images ({", ".join(IMAGE_EXTENSIONS)}) in folder {d}')
+        which = '' if pattern == '*' else f' matching {pattern!r}'
+        raise DatasetError(f'no images ({", ".join(IMAGE_EXTENSIONS)}){which} in folder {d}')
     unreadable = [p for p in files if not cv2.haveImageReader(str(p))]
     if unreadable:
         raise ImageReadError(f'unreadable image {unreadable[0]} (no decoder recognises it'

@@ -18,6 +18,10 @@ class HomographyFileError(DatasetError):
     """A homography text file of an Oxford/HPatches sequence is missing or malformed."""
 
 
+class CameraFileError(DatasetError):
+    """A camera intrinsics file (e.g. a ViSP XML configuration) is missing or malformed."""
+
+
 class TopicError(DatasetError):
     """A requested topic is absent from a bag or has an unexpected message type."""
 

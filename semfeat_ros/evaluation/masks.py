@@ -60,13 +60,21 @@ def camera_valid_mask(camera_yaml: str | Path, width: int, height: int, *,
     from semfeat_ros.camera import load_camera_yaml
 
     camera, _ = load_camera_yaml(camera_yaml, distortion_model=distortion_model, fov_deg=fov_deg)
-    if (camera.width, camera.height) != (width, height):
-        if abs(camera.width / camera.height - width / height) > 0.01:
-            raise ConfigError(
-                f'camera {camera_yaml}: calibration size {camera.width}x{camera.height} px does '
-                f'not match the image aspect ratio of {width}x{height} px')
-        camera = camera.scaled(width, height)
+    camera = camera_for_size(camera, width, height, f'camera {camera_yaml}')
     return erode_mask(camera.valid_mask(), margin_px)
+
+
+def camera_for_size(camera: object, width: int, height: int, source: str) -> object:
+    """``camera`` (a ``semfeat_ros.camera.CameraModel``) for images of ``width x height`` px:
+    itself, or scaled when the calibration was made at another resolution of the same aspect
+    ratio; :class:`ConfigError` (naming ``source``) when the aspect ratios differ."""
+    if (camera.width, camera.height) == (width, height):
+        return camera
+    if abs(camera.width / camera.height - width / height) > 0.01:
+        raise ConfigError(
+            f'{source}: calibration size {camera.width}x{camera.height} px does not match the '
+            f'image aspect ratio of {width}x{height} px')
+    return camera.scaled(width, height)
 
 
 class MaskSource:
