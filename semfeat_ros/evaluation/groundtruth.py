@@ -106,7 +106,8 @@ class DepthGroundTruth:
 
 @dataclass
 class Pair:
-    """One evaluation pair: two RGB uint8 images (H, W, 3), their valid masks, the ground truth.
+    """One evaluation pair: two RGB uint8 images (H, W, 3), their valid masks, the ground truth
+    (None for real sequences, which are scored without it).
 
     ``H`` is the exact homography when the ground truth is planar (homography accuracy is only
     defined then). ``labels_*`` are GT class-id maps (255 = ignore), ``gt_keypoints_a`` a fixed
@@ -118,7 +119,7 @@ class Pair:
     image_b: np.ndarray
     mask_a: np.ndarray
     mask_b: np.ndarray
-    gt: GroundTruth
+    gt: GroundTruth | None
     H: np.ndarray | None = None
     labels_a: np.ndarray | None = None
     labels_b: np.ndarray | None = None

@@ -170,6 +170,40 @@ def estimate_homography(pts_a: np.ndarray, pts_b: np.ndarray, threshold_px: floa
     return H, mask.ravel().astype(bool)
 
 
+FUNDAMENTAL_USAC = 'fundamental-matrix USAC_MAGSAC (OpenCV, px)'
+FUNDAMENTAL_RANSAC = ('fundamental-matrix RANSAC (OpenCV, px; USAC_MAGSAC raised on a '
+                      'degenerate pair)')
+
+
+def verify_fundamental(pts_a: np.ndarray, pts_b: np.ndarray, threshold_px: float = 3.0,
+                       max_iters: int = 10000,
+                       confidence: float = 0.999) -> tuple[np.ndarray, str]:
+    """Uncalibrated geometric verification of matched points A -> B (px): OpenCV
+    ``findFundamentalMat`` with ``USAC_MAGSAC``, threshold ``threshold_px`` px.
+
+    OpenCV's USAC raises ``cv2.error`` (``!model.empty()``) on some degenerate inputs, e.g. a
+    pair where no point moves; those pairs fall back to OpenCV's classic ``FM_RANSAC`` at the
+    same threshold. Returns the (M,) bool inlier mask (all False with fewer than 8 matches or
+    when no model is found) and the name of the estimator used.
+    """
+    pts_a = _points(pts_a, 'pts_a').astype(np.float64)
+    pts_b = _points(pts_b, 'pts_b').astype(np.float64)
+    inl = np.zeros(len(pts_a), dtype=bool)
+    if len(pts_a) < 8:
+        return inl, FUNDAMENTAL_USAC
+    how = FUNDAMENTAL_USAC
+    try:
+        F, mask = cv2.findFundamentalMat(pts_a, pts_b, cv2.USAC_MAGSAC, float(threshold_px),
+                                         float(confidence), int(max_iters))
+    except cv2.error:
+        how = FUNDAMENTAL_RANSAC
+        F, mask = cv2.findFundamentalMat(pts_a, pts_b, cv2.FM_RANSAC, float(threshold_px),
+                                         float(confidence), int(max_iters))
+    if F is None or mask is None or not np.isfinite(F).all():
+        return inl, how
+    return mask.ravel()[: len(pts_a)].astype(bool), how
+
+
 def image_corners(width: int, height: int) -> np.ndarray:
     """The four corner pixel centres (4, 2) px of a ``width x height`` image."""
     return np.array([[0.0, 0.0], [width - 1.0, 0.0], [width - 1.0, height - 1.0],
@@ -187,8 +221,9 @@ def homography_corner_error(H_est: np.ndarray | None, H_gt: np.ndarray, width: i
     return float(e.mean()) if np.isfinite(e).all() else float('inf')
 
 
-def pair_metrics(kpts_a: np.ndarray, kpts_b: np.ndarray, matches: np.ndarray, gt: GroundTruth,
-                 *, eps: float = 3.0, verified: np.ndarray | None = None,
+def pair_metrics(kpts_a: np.ndarray, kpts_b: np.ndarray, matches: np.ndarray,
+                 gt: GroundTruth | None, *, eps: float = 3.0,
+                 verified: np.ndarray | None = None,
                  gt_keypoints_a: np.ndarray | None = None, H_gt: np.ndarray | None = None,
                  H_est: np.ndarray | None = None,
                  image_size: tuple[int, int] | None = None) -> dict[str, object]:
@@ -196,12 +231,26 @@ def pair_metrics(kpts_a: np.ndarray, kpts_b: np.ndarray, matches: np.ndarray, gt
 
     ``verified`` is the (M,) bool inlier mask of geometric verification (None: not run);
     ``H_gt`` / ``H_est`` / ``image_size = (width, height)`` px enable homography accuracy.
+    Without ground truth (``gt`` None: real sequences) only the counts and the verified ratio
+    (verified / proposed matches) are defined.
     """
     if eps <= 0:
         raise ConfigError(f'eps must be > 0 px, got {eps}')
     kpts_a = _points(kpts_a, 'kpts_a')
     kpts_b = _points(kpts_b, 'kpts_b')
     matches = _matches(matches, len(kpts_a), len(kpts_b))
+    v = None
+    if verified is not None:
+        v = np.asarray(verified, bool).reshape(-1)
+        if v.shape != (len(matches),):
+            raise ConfigError(f'verified: expected {len(matches)} flags, got {v.shape}')
+    if gt is None:
+        out: dict[str, object] = {'n_kpts_a': int(len(kpts_a)), 'n_kpts_b': int(len(kpts_b)),
+                                  'n_matches': int(len(matches))}
+        if v is not None:
+            out['n_verified'] = int(np.count_nonzero(v))
+            out['verified_ratio'] = inlier_ratio(v)
+        return out
     if len(kpts_a):
         proj_a, vis_a = gt.a_to_b(kpts_a)
     else:
@@ -209,7 +258,7 @@ def pair_metrics(kpts_a: np.ndarray, kpts_b: np.ndarray, matches: np.ndarray, gt
     err = match_errors(proj_a, vis_a, kpts_b, matches)
     correct = err <= eps
     matchable = matchable_keypoints(proj_a, vis_a, kpts_b, eps)
-    out: dict[str, object] = {
+    out = {
         'n_kpts_a': int(len(kpts_a)), 'n_kpts_b': int(len(kpts_b)),
         'n_matchable': int(np.count_nonzero(matchable)),
         'n_matches': int(len(matches)), 'n_correct': int(np.count_nonzero(correct)),
@@ -218,11 +267,9 @@ def pair_metrics(kpts_a: np.ndarray, kpts_b: np.ndarray, matches: np.ndarray, gt
         'mma': mean_matching_accuracy(err).tolist(),
         'repeatability': repeatability(kpts_a, kpts_b, gt, eps),
     }
-    if verified is not None:
-        v = np.asarray(verified, bool).reshape(-1)
-        if v.shape != (len(matches),):
-            raise ConfigError(f'verified: expected {len(matches)} flags, got {v.shape}')
+    if v is not None:
         out['n_verified'] = int(np.count_nonzero(v))
+        out['verified_ratio'] = inlier_ratio(v)
         out['inlier_ratio_verified'] = inlier_ratio(correct[v])
         out['keypoint_recall_verified'] = keypoint_recall(matches[v], correct[v], matchable)
     if gt_keypoints_a is not None:
@@ -237,8 +284,9 @@ def pair_metrics(kpts_a: np.ndarray, kpts_b: np.ndarray, matches: np.ndarray, gt
 
 SCALAR_KEYS: tuple[str, ...] = (
     'keypoint_recall', 'inlier_ratio', 'keypoint_recall_verified', 'inlier_ratio_verified',
-    'gt_keypoint_recall', 'gt_keypoint_detection', 'repeatability', 'n_matches', 'n_verified',
-    'n_correct', 'n_matchable', 'n_kpts_a', 'n_kpts_b', 'extract_ms', 'match_ms', 'verify_ms')
+    'gt_keypoint_recall', 'gt_keypoint_detection', 'repeatability', 'verified_ratio',
+    'n_matches', 'n_verified', 'n_correct', 'n_matchable', 'n_kpts_a', 'n_kpts_b', 'extract_ms',
+    'match_ms', 'verify_ms')
 """Per-pair scalars averaged over pairs (NaN skipped) by :func:`summarize`."""
 
 

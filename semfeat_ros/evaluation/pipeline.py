@@ -3,7 +3,9 @@
 Every method sees the same pairs in the same run. Extractors with the same ``key`` run once per
 image (the two semfeat methods share the network's output). Geometric verification is done by
 the method itself when it returns ``verified``; otherwise by OpenCV RANSAC homography when the
-pair's ground truth is planar, else by essential-matrix RANSAC on the camera's bearings.
+pair's ground truth is planar, else by essential-matrix RANSAC on the camera's bearings when the
+pair has a camera, else by a fundamental matrix (OpenCV USAC_MAGSAC, px). Pairs without ground
+truth (real sequences) are scored by counts only: proposed, verified, verified / proposed.
 """
 from __future__ import annotations
 
@@ -31,6 +33,7 @@ from semfeat_ros.evaluation.metrics import (
     match_errors,
     pair_metrics,
     summarize,
+    verify_fundamental,
 )
 from semfeat_ros.evaluation.report import draw_matches, write_outputs
 from semfeat_ros.evaluation.segmentation import confusion_matrix, segmentation_summary
@@ -54,6 +57,9 @@ class EvalConf:
     progress: bool = True
     network_conf: dict[str, object] = field(default_factory=dict)
     """Overrides of the network's ``FeatureExtractor`` options (e.g. ``resize_max`` px)."""
+    seq_threshold_from_ransac_px: bool = False
+    """``semfeat_seq`` verifies at ``ransac_px`` (``ransac_px / fx`` rad) also on pairs with a
+    camera; False: with a camera it uses the matcher's own thresholds."""
 
     def __post_init__(self) -> None:
         if self.eps_px <= 0:
@@ -133,14 +139,15 @@ class _MethodState:
     per_pair: list[dict] = field(default_factory=list)
     figures: list[str] = field(default_factory=list)
     error: str | None = None
-    verification: str | None = None
+    verifications: set[str] = field(default_factory=set)
 
 
 def build_methods(conf: EvalConf) -> tuple[list[Method], dict[str, str]]:
     """Instantiate the configured methods; returns the runnable ones and, for the others, the
     reason they are skipped."""
     mconf = MethodConf(max_features=conf.max_features, weights=conf.weights,
-                      extra={'ransac_px': conf.ransac_px, 'network_conf': conf.network_conf})
+                      extra={'ransac_px': conf.ransac_px, 'network_conf': conf.network_conf,
+                             'seq_threshold_from_ransac_px': conf.seq_threshold_from_ransac_px})
     runnable: list[Method] = []
     skipped: dict[str, str] = {}
     for name in conf.methods:
@@ -172,9 +179,11 @@ def evaluate(pairs: Iterable[Pair], conf: EvalConf, out_dir: str | Path, *, mode
     seg_count: dict[str, int] = {}
     verifications: set[str] = set()
     count = 0
+    has_gt = False
     for k, pair in enumerate(tqdm(pairs, total=n_pairs, desc=f'semfeat-eval {mode}',
                                   unit='pair', disable=not conf.progress)):
         count += 1
+        has_gt = has_gt or pair.gt is not None
         feats: dict[str, tuple[Features, Features, float]] = {}
         for st in states.values():
             if st.error is not None:
@@ -194,18 +203,20 @@ def evaluate(pairs: Iterable[Pair], conf: EvalConf, out_dir: str | Path, *, mode
             except MethodUnavailableError as exc:
                 st.error = str(exc)
                 continue
-            metrics, verification = _score(pair, fa, fb, res, conf, bearing_verifier,
-                                           bearing_verifier_name)
+            metrics, verification, verified = _score(pair, fa, fb, res, conf, bearing_verifier,
+                                                     bearing_verifier_name)
             verifications.add(verification)
-            st.verification = verification
+            st.verifications.add(verification)
             metrics.update(pair=pair.name, extract_ms=t_ex, match_ms=t_match)
             st.per_pair.append(metrics)
             if k < conf.n_figures:
-                st.figures.append(_figure(pair, fa, fb, res, conf, out, st.method, k))
+                st.figures.append(_figure(pair, fa, fb, res, verified, conf, out, st.method,
+                                          k))
     if count == 0:
         raise ConfigError(f'{mode}: no pairs to evaluate from {source}')
     results: dict = {
         'mode': mode, 'source': source, 'n_pairs': count, 'seed': conf.seed,
+        'ground_truth': has_gt,
         'eps_px': conf.eps_px, 'ransac_px': conf.ransac_px, 'max_features': conf.max_features,
         'mask': mask_description, 'verification': ', '.join(sorted(verifications)) or 'none',
         'methods': {}, 'notes': list(notes or []),
@@ -226,7 +237,8 @@ def evaluate(pairs: Iterable[Pair], conf: EvalConf, out_dir: str | Path, *, mode
             continue
         results['methods'][name] = {
             'label': st.method.label, 'summary': summarize(st.per_pair),
-            'verification': st.verification, 'per_pair': st.per_pair,
+            'verification': ', '.join(sorted(st.verifications)) or 'none',
+            'per_pair': st.per_pair,
             'figures': st.figures}
     seg_figs = []
     if seg_cm:
@@ -266,7 +278,8 @@ def _accumulate_segmentation(pair: Pair, key: str, fa: Features, fb: Features,
 
 def _score(pair: Pair, fa: Features, fb: Features, res: MatchResult, conf: EvalConf,
            bearing_verifier: BearingVerifier | None,
-           bearing_verifier_name: str) -> tuple[dict, str]:
+           bearing_verifier_name: str) -> tuple[dict, str, np.ndarray | None]:
+    """Per-pair metrics, the verification's description and the (M,) verified mask."""
     matches = np.asarray(res.matches, dtype=np.int64).reshape(-1, 2)
     H_est = None
     t0 = time.perf_counter()
@@ -282,8 +295,8 @@ def _score(pair: Pair, fa: Features, fb: Features, res: MatchResult, conf: EvalC
         verified = fn(fa.keypoints, fb.keypoints, matches, pair.camera, conf.ransac_px)
         verification = bearing_verifier_name
     else:
-        verified = None
-        verification = 'none'
+        verified, verification = verify_fundamental(fa.keypoints[matches[:, 0]],
+                                                    fb.keypoints[matches[:, 1]], conf.ransac_px)
     verify_ms = 1000.0 * (time.perf_counter() - t0)
     if pair.H is not None and res.verified is not None and len(matches) >= 4:
         # The method verified itself: H for the homography accuracy from all its matches.
@@ -294,19 +307,28 @@ def _score(pair: Pair, fa: Features, fb: Features, res: MatchResult, conf: EvalC
                            verified=verified, gt_keypoints_a=pair.gt_keypoints_a, H_gt=pair.H,
                            H_est=H_est, image_size=(w, h))
     metrics['verify_ms'] = verify_ms
-    return metrics, verification
+    return metrics, verification, verified
 
 
-def _figure(pair: Pair, fa: Features, fb: Features, res: MatchResult, conf: EvalConf, out: Path,
-            method: Method, k: int) -> str:
+def _figure(pair: Pair, fa: Features, fb: Features, res: MatchResult,
+            verified: np.ndarray | None, conf: EvalConf, out: Path, method: Method,
+            k: int) -> str:
+    """Match figure of one pair: green correct / red wrong w.r.t. the ground truth, or without
+    ground truth green verified / red rejected."""
     matches = np.asarray(res.matches, dtype=np.int64).reshape(-1, 2)
-    if len(fa):
-        proj, vis = pair.gt.a_to_b(fa.keypoints)
+    if pair.gt is None:
+        good_name = 'verified'
+        correct = (np.zeros(len(matches), bool) if verified is None
+                   else np.asarray(verified, bool))
     else:
-        proj, vis = np.zeros((0, 2)), np.zeros(0, bool)
-    correct = match_errors(proj, vis, fb.keypoints, matches) <= conf.eps_px
+        good_name = 'correct'
+        if len(fa):
+            proj, vis = pair.gt.a_to_b(fa.keypoints)
+        else:
+            proj, vis = np.zeros((0, 2)), np.zeros(0, bool)
+        correct = match_errors(proj, vis, fb.keypoints, matches) <= conf.eps_px
     safe = ''.join(c if c.isalnum() or c in '-_.' else '_' for c in pair.name)
     path = out / 'matches' / f'{method.name}_{k:03d}_{safe}.png'
     draw_matches(pair.image_a, pair.image_b, fa.keypoints, fb.keypoints, matches, correct, path,
-                 f'{method.label} | {pair.name}', seed=conf.seed + k)
+                 f'{method.label} | {pair.name}', seed=conf.seed + k, good_name=good_name)
     return str(path.relative_to(out))

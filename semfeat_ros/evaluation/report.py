@@ -52,40 +52,62 @@ def _num(x: object, digits: int = 1) -> str:
     return f'{float(x):.{digits}f}'
 
 
+def _gt_row(s: dict) -> list[str]:
+    mma = s.get('mma') or []
+    mma3 = mma[MMA_THRESHOLDS.index(3)] if len(mma) >= 3 else None
+    hacc = s.get('homography_accuracy')
+    hstr = '/'.join(_pct(hacc.get(str(t))) for t in HOMOGRAPHY_THRESHOLDS) if hacc else 'n/a'
+    return [_pct(s.get('keypoint_recall')), _pct(s.get('inlier_ratio')),
+            _pct(s.get('inlier_ratio_verified')), _pct(s.get('keypoint_recall_verified')),
+            _pct(s.get('gt_keypoint_recall')), _pct(mma3), _pct(s.get('repeatability')), hstr,
+            _num(s.get('n_matches')), _num(s.get('n_verified'))]
+
+
+def _no_gt_row(s: dict) -> list[str]:
+    kpts = [s.get('n_kpts_a'), s.get('n_kpts_b')]
+    mean_kpts = (sum(kpts) / 2 if all(isinstance(k, (int, float)) for k in kpts) else None)
+    return [_num(s.get('n_matches')), _num(s.get('n_verified')),
+            _pct(s.get('verified_ratio')), _num(mean_kpts)]
+
+
+_GT_COLUMNS = ['Keypoint Recall (%)', 'Inlier Ratio (%)', 'Inlier Ratio verified (%)',
+               'Recall verified (%)', 'GT-kp Recall (%)', 'MMA@3px (%)', 'Repeatability (%)',
+               'H acc @1/3/5 px (%)', '#Matches', '#Verified']
+_NO_GT_COLUMNS = ['#Proposed (per pair)', '#Verified (per pair)',
+                  'Inlier Ratio = verified / proposed (%)', '#Keypoints (per image)']
+
+
 def markdown_table(results: dict) -> str:
-    """The Markdown report: header lines, then one row per evaluated method. The first three
-    columns are the paper's Table 1 (Method, Keypoint Recall, Inlier Ratio)."""
+    """The Markdown report: header lines, then one row per evaluated method. With ground truth
+    the first three columns are the paper's Table 1 (Method, Keypoint Recall, Inlier Ratio);
+    without (real sequences) the columns are proposed / verified matches per pair and their
+    ratio. Timing columns close both."""
     methods: dict = results['methods']
     verif = results.get('verification', 'none')
+    has_gt = results.get('ground_truth', True)
     lines = [
         f'# semfeat-eval: {results["mode"]}', '',
         f'- data: {results.get("source", "")}',
         f'- pairs: {results.get("n_pairs", 0)}, seed: {results.get("seed")}, '
-        f'eps: {_num(results.get("eps_px"))} px, geometric verification: {verif}',
+        + (f'eps: {_num(results.get("eps_px"))} px, ' if has_gt else
+           f'RANSAC threshold: {_num(results.get("ransac_px"))} px, ')
+        + f'geometric verification: {verif}',
         f'- valid region: {results.get("mask", "whole frame")}', '',
-        'Keypoint Recall = correct matches / GT-matchable keypoints; Inlier Ratio = correct / '
-        'proposed matches (before verification); definitions in docs/METRICS.md.', '',
+        ('Keypoint Recall = correct matches / GT-matchable keypoints; Inlier Ratio = correct / '
+         'proposed matches (before verification); definitions in docs/METRICS.md.' if has_gt
+         else 'No ground truth: verified = accepted by geometric verification, an upper bound '
+         'on the correct matches; definitions in docs/METRICS.md.'), '',
     ]
-    cols = ['Method', 'Keypoint Recall (%)', 'Inlier Ratio (%)', 'Inlier Ratio verified (%)',
-            'Recall verified (%)', 'GT-kp Recall (%)', 'MMA@3px (%)', 'Repeatability (%)',
-            'H acc @1/3/5 px (%)', '#Matches', '#Verified', 'Extract (ms/pair)',
-            'Match (ms/pair)']
+    cols = (['Method', *(_GT_COLUMNS if has_gt else _NO_GT_COLUMNS), 'Extract (ms/pair)',
+             'Match (ms/pair)'])
+    row_of = _gt_row if has_gt else _no_gt_row
     lines.append('| ' + ' | '.join(cols) + ' |')
     lines.append('|' + '|'.join([':---'] + ['---:'] * (len(cols) - 1)) + '|')
     for entry in methods.values():
         s = entry.get('summary')
         if s is None:
             continue
-        mma = s.get('mma') or []
-        mma3 = mma[MMA_THRESHOLDS.index(3)] if len(mma) >= 3 else None
-        hacc = s.get('homography_accuracy')
-        hstr = ('/'.join(_pct(hacc.get(str(t))) for t in HOMOGRAPHY_THRESHOLDS)
-                if hacc else 'n/a')
-        row = [entry['label'], _pct(s.get('keypoint_recall')), _pct(s.get('inlier_ratio')),
-               _pct(s.get('inlier_ratio_verified')), _pct(s.get('keypoint_recall_verified')),
-               _pct(s.get('gt_keypoint_recall')), _pct(mma3), _pct(s.get('repeatability')),
-               hstr, _num(s.get('n_matches')), _num(s.get('n_verified')),
-               _num(s.get('extract_ms')), _num(s.get('match_ms'))]
+        row = [entry['label'], *row_of(s), _num(s.get('extract_ms')), _num(s.get('match_ms'))]
         lines.append('| ' + ' | '.join(row) + ' |')
     skipped = {n: e for n, e in methods.items() if e.get('summary') is None}
     if skipped:
@@ -129,19 +151,28 @@ def plot_bars(results: dict, out_dir: str | Path) -> list[Path]:
         v = s.get(key)
         return float(v) if isinstance(v, (int, float)) and math.isfinite(float(v)) else 0.0
 
-    groups = [('keypoint_recall', 'Keypoint Recall'), ('inlier_ratio', 'Inlier Ratio'),
-              ('inlier_ratio_verified', 'Inlier Ratio (verified)'),
-              ('gt_keypoint_recall', 'GT-keypoint Recall')]
+    has_gt = results.get('ground_truth', True)
+    if has_gt:
+        groups = [('keypoint_recall', 'Keypoint Recall'), ('inlier_ratio', 'Inlier Ratio'),
+                  ('inlier_ratio_verified', 'Inlier Ratio (verified)'),
+                  ('gt_keypoint_recall', 'GT-keypoint Recall')]
+        scale, ylabel = 100.0, '%'
+        title = f'Matching quality ({results["mode"]}, eps {results.get("eps_px")} px)'
+    else:
+        groups = [('n_matches', 'proposed'), ('n_verified', 'verified')]
+        scale, ylabel = 1.0, 'matches per pair'
+        title = f'Matches without ground truth ({results["mode"]})'
     groups = [g for g in groups if any(g[0] in s for s in summ)]
     fig, ax = plt.subplots(figsize=(max(6.0, 1.4 * len(ran) + 2), 4.2))
     w = 0.8 / max(len(groups), 1)
     for k, (key, name) in enumerate(groups):
-        ax.bar(x + (k - (len(groups) - 1) / 2) * w, [100 * val(s, key) for s in summ], w,
+        ax.bar(x + (k - (len(groups) - 1) / 2) * w, [scale * val(s, key) for s in summ], w,
                label=name)
     ax.set_xticks(x, labels, rotation=20, ha='right')
-    ax.set_ylabel('%')
-    ax.set_ylim(0, 100)
-    ax.set_title(f'Matching quality ({results["mode"]}, eps {results.get("eps_px")} px)')
+    ax.set_ylabel(ylabel)
+    if has_gt:
+        ax.set_ylim(0, 100)
+    ax.set_title(title)
     ax.legend(fontsize=8)
     fig.tight_layout()
     paths.append(out / 'bars_matching.png')
@@ -177,6 +208,8 @@ def plot_bars(results: dict, out_dir: str | Path) -> list[Path]:
     fig.savefig(paths[-1], dpi=100)
     plt.close(fig)
 
+    if not any(s.get('mma') for s in summ):
+        return paths
     fig, ax = plt.subplots(figsize=(6.0, 4.2))
     for lab, s in zip(labels, summ):
         mma = s.get('mma')
@@ -198,10 +231,12 @@ def plot_bars(results: dict, out_dir: str | Path) -> list[Path]:
 def draw_matches(image_a: np.ndarray, image_b: np.ndarray, kpts_a: np.ndarray,
                  kpts_b: np.ndarray, matches: np.ndarray, correct: np.ndarray,
                  path: str | Path, title: str = '', *, max_lines: int = 200, seed: int = 0,
-                 max_width: int = 1600, min_width: int = 960) -> Path:
-    """Side-by-side figure (A | B) of the matches: correct green, wrong red (at most
-    ``max_lines``, a seeded random subset; the title gives the full counts). RGB inputs; the
-    figure is resized to a width within ``[min_width, max_width]`` px."""
+                 max_width: int = 1600, min_width: int = 960,
+                 good_name: str = 'correct') -> Path:
+    """Side-by-side figure (A | B) of the matches: ``correct`` green, the others red (at most
+    ``max_lines``, a seeded random subset; the title gives the full counts, ``good_name``
+    naming the green ones). RGB inputs; the figure is resized to a width within
+    ``[min_width, max_width]`` px."""
     ha, wa = image_a.shape[:2]
     hb, wb = image_b.shape[:2]
     h = max(ha, hb)
@@ -230,7 +265,7 @@ def draw_matches(image_a: np.ndarray, image_b: np.ndarray, kpts_a: np.ndarray,
         cv2.circle(canvas, p1, 3, color, -1, cv2.LINE_AA)
         cv2.circle(canvas, p2, 3, color, -1, cv2.LINE_AA)
     n_ok = int(correct.sum())
-    text = f'{title}  correct {n_ok} / {len(matches)}'
+    text = f'{title}  {good_name} {n_ok} / {len(matches)}'
     if len(idx) < len(matches):
         text += f' (showing {len(idx)})'
     canvas = np.concatenate([np.zeros((26, canvas.shape[1], 3), np.uint8), canvas], axis=0)
