@@ -360,14 +360,21 @@ class SequentialMatcherMethod:
     """The product's ``semfeat_ros.matching.SequentialMatcher`` (semantic NN matching, ratio
     test, bearing verification) on our features: a fresh matcher sees frame A then frame B.
 
-    Bearings come from the pair's camera (sequence mode, the matcher's own configuration) or,
-    without a camera, from :func:`pseudo_pinhole_bearings` with the verification threshold set
-    to ``ransac_px / f`` rad so that it matches the harness's RANSAC threshold in px."""
+    Bearings come from the pair's camera (sequence mode) or, without a camera, from
+    :func:`pseudo_pinhole_bearings`. Without a camera, or with ``threshold_from_ransac_px``, the
+    verification threshold is ``ransac_px / f`` rad (rotation model: 1.5 times that), with ``f``
+    the camera's fx or the pseudo-pinhole's image width (px), so that it matches the harness's
+    RANSAC threshold in px; otherwise the matcher's own configuration applies."""
 
     name: str
     label: str
     extractor: Extractor
     ransac_px: float = 3.0
+    threshold_from_ransac_px: bool = False
+
+    def _thresholds(self, f: float) -> dict[str, object]:
+        return {'verification': {'threshold_rad': self.ransac_px / f,
+                                 'rotation_threshold_rad': 1.5 * self.ransac_px / f}}
 
     def match(self, fa: Features, fb: Features, pair: Pair) -> MatchResult:
         from semfeat_ros.matching import FrameFeatures, SequentialMatcher
@@ -376,10 +383,13 @@ class SequentialMatcherMethod:
         if pair.camera is None:
             ba = pseudo_pinhole_bearings(fa.keypoints, *pair.image_a.shape[1::-1])
             bb = pseudo_pinhole_bearings(fb.keypoints, *pair.image_b.shape[1::-1])
-            f = float(pair.image_a.shape[1])
-            conf = {'verification': {'threshold_rad': self.ransac_px / f,
-                                     'rotation_threshold_rad': 1.5 * self.ransac_px / f}}
+            conf = self._thresholds(float(pair.image_a.shape[1]))
             how = 'sequential matcher: bearing verification on pinhole pseudo-bearings'
+        elif self.threshold_from_ransac_px:
+            ba = bb = None
+            conf = self._thresholds(float(pair.camera.fx))
+            how = ("sequential matcher: its own bearing verification on the camera's bearings at "
+                   'ransac_px / fx')
         else:
             ba = bb = None
             how = 'sequential matcher: its own bearing verification'
@@ -399,9 +409,10 @@ def _semfeat_seq(conf: MethodConf) -> Method:
         raise MethodUnavailableError(
             f'the product sequential matcher (semfeat_ros.matching.SequentialMatcher) is not '
             f'available ({exc})') from exc
-    return SequentialMatcherMethod('semfeat_seq', 'Ours (sequential matcher + verification)',
-                                   semfeat_extractor(conf),
-                                   float(conf.extra.get('ransac_px', 3.0)))
+    return SequentialMatcherMethod(
+        'semfeat_seq', 'Ours (sequential matcher + verification)', semfeat_extractor(conf),
+        float(conf.extra.get('ransac_px', 3.0)),
+        bool(conf.extra.get('seq_threshold_from_ransac_px', False)))
 
 
 # ----------------------------------------------------------------- pretrained real-image peers

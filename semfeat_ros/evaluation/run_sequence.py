@@ -1,8 +1,9 @@
-"""Mode ``sequence``: frame pairs ``(i, i + stride)`` of a rendered drive.
+"""Mode ``sequence``: frame pairs ``(i, i + stride)`` of a rendered drive, or of a real image
+sequence without ground truth (``--images``, :mod:`.run_real_sequence`).
 
-Ground truth comes from the rendered range images and camera poses through the simulator's
-occlusion-checked ``semfeat_ros.sim.groundtruth.warp_pixels``; dynamic classes (from the GT
-labels, when present) never count as visible. Two sources:
+For rendered drives, ground truth comes from the rendered range images and camera poses through
+the simulator's occlusion-checked ``semfeat_ros.sim.groundtruth.warp_pixels``; dynamic classes
+(from the GT labels, when present) never count as visible. Two rendered sources:
 
 * a rosbag2 bag (``--bag``) with an image topic, a range-image topic (``32FC1`` m, or ``16UC1``
   mm with 0 = invalid), a pose topic (``PoseStamped``, ``PoseWithCovarianceStamped``,
@@ -14,7 +15,7 @@ labels, when present) never count as visible. Two sources:
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 import struct
 
@@ -51,15 +52,26 @@ class SequenceTopics:
 
 @dataclass(frozen=True)
 class SequencePaths:
+    """Exactly one source: ``bag``, ``shard`` (rendered drives) or ``images`` (a real sequence)."""
+
     out: Path
     bag: Path | None = None
     shard: Path | None = None
     camera: Path | None = None
     """Camera YAML: intrinsics when the bag has no CameraInfo, and the base_link -> camera
-    extrinsic (default: the shipped config/camera_front.yaml)."""
+    extrinsic (default: the shipped config/camera_front.yaml); with ``images``, the frames'
+    intrinsics (optional)."""
     gt_keypoints: Path | str | None = 'rendered'
     """``'rendered'`` (:func:`rendered_keypoints`), None / ``'none'``, or a folder of
-    ``<frame index>.npy`` / ``.txt`` GT keypoint sets (K, 2) px."""
+    ``<frame index>.npy`` / ``.txt`` GT keypoint sets (K, 2) px (rendered drives only)."""
+    images: Path | None = None
+    """Folder of the frames of a real sequence (no ground truth)."""
+    pattern: str = '*'
+    """Glob on the file names of ``images`` that selects the frames."""
+    camera_xml: Path | None = None
+    """ViSP XML file with the intrinsics of ``images`` (``<camera>``: px, py, u0, v0)."""
+    pinhole: tuple[float, ...] | None = None
+    """Pinhole intrinsics ``(fx, fy, cx, cy)`` px of ``images``."""
 
 
 @dataclass(frozen=True)
@@ -72,7 +84,9 @@ class SequenceConf:
     """``'base_link'`` (pose is T_map_base) or ``'camera'`` (pose is T_map_cam)."""
     pose_tolerance_ns: int = 1_000_000
     mask_margin_px: int = 8
-    fov_deg: float = 190.0
+    fov_deg: float | None = 190.0
+    """Lens field of view (deg) of fisheye models; None: the calibration file's own (real
+    sequences) or 190 (rendered drives)."""
 
     def __post_init__(self) -> None:
         if self.stride < 1:
@@ -341,9 +355,18 @@ def _gt_keypoints(folder: Path | None, index: int) -> np.ndarray | None:
 
 
 def main(conf: SequenceConf, paths: SequencePaths) -> dict:
-    """Evaluate every method on the pairs of a rendered drive; outputs go to ``paths.out``."""
-    if (paths.bag is None) == (paths.shard is None):
-        raise ConfigError('sequence: give exactly one of --bag BAG and --shard NPZ')
+    """Evaluate every method on the pairs of a rendered drive or, with ``paths.images``, of a
+    real image sequence (:func:`.run_real_sequence.main`); outputs go to ``paths.out``."""
+    if sum(p is not None for p in (paths.bag, paths.shard, paths.images)) != 1:
+        raise ConfigError('sequence: give exactly one of --bag BAG, --shard NPZ and --images DIR')
+    if paths.images is not None:
+        from semfeat_ros.evaluation import run_real_sequence
+
+        return run_real_sequence.main(conf, paths)
+    if paths.camera_xml is not None or paths.pinhole is not None or paths.pattern != '*':
+        raise ConfigError('sequence: --camera-xml, --pinhole and --glob apply to --images only')
+    if conf.fov_deg is None:
+        conf = replace(conf, fov_deg=190.0)
     warp = _warp_fn()
     from semfeat_ros.labels import load_labels
 

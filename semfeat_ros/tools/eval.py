@@ -5,6 +5,7 @@ Modes (subcommands)::
     semfeat-eval transforms (--images DIR | --bag BAG [--topic T]) --pairs N --seed S --out DIR
     semfeat-eval homography --dataset DIR --out DIR
     semfeat-eval sequence (--bag BAG | --shard NPZ) --stride K --out DIR
+    semfeat-eval sequence --images DIR [--camera-xml XML | --pinhole fx,fy,cx,cy] --out DIR
 
 Each writes results.json, results.md (Table 1 layout + extra columns), bar charts and match
 figures into ``--out``. Metrics are defined in docs/METRICS.md. Bad input gives one line on
@@ -13,6 +14,7 @@ stderr and exit status 1 (2 for a bad command line).
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 import sys
 
@@ -44,6 +46,17 @@ def _positive_float(text: str) -> float:
     if not v > 0:
         raise argparse.ArgumentTypeError(f'expected a value > 0, got {text}')
     return v
+
+
+def _pinhole(text: str) -> tuple[float, float, float, float]:
+    try:
+        vals = tuple(float(v) for v in text.split(','))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'expected fx,fy,cx,cy (px), got {text!r}') from None
+    if len(vals) != 4 or not all(math.isfinite(v) for v in vals) or min(vals[:2]) <= 0:
+        raise argparse.ArgumentTypeError(
+            f'expected four finite numbers fx,fy,cx,cy (px) with fx, fy > 0, got {text!r}')
+    return vals
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -114,10 +127,25 @@ def build_parser() -> argparse.ArgumentParser:
                    help='folder of <sequence>.npy/.txt GT keypoints of image 1')
 
     s = sub.add_parser('sequence', parents=[common],
-                       help='rendered drive: frames (i, i+K), GT from depth and poses')
+                       help='frames (i, i+K) of a rendered drive (GT from depth and poses) or of '
+                       'a real image sequence (no GT: verified matches)')
     src = s.add_mutually_exclusive_group(required=True)
     src.add_argument('--bag', type=Path, help='rosbag2 of a rendered drive')
     src.add_argument('--shard', type=Path, help='simulator shard (.npz)')
+    src.add_argument('--images', type=Path,
+                     help='folder of the frames of a real sequence (JPG/PNG/PPM/PGM, natural '
+                     'order); no ground truth')
+    s.add_argument('--glob', default='*',
+                   help="--images: glob on file names selecting the frames (default '*')")
+    cam = s.add_mutually_exclusive_group()
+    cam.add_argument('--camera', type=Path, default=None,
+                     help='calibration YAML: extrinsic and intrinsics without CameraInfo '
+                     '(default: the shipped config/camera_front.yaml); with --images the '
+                     "frames' intrinsics")
+    cam.add_argument('--camera-xml', type=Path, default=None,
+                     help='--images: ViSP XML with the intrinsics (<camera>: px, py, u0, v0)')
+    cam.add_argument('--pinhole', type=_pinhole, default=None,
+                     help='--images: pinhole intrinsics fx,fy,cx,cy (px)')
     s.add_argument('--stride', type=int, default=1, help='frame gap K of a pair (default 1)')
     s.add_argument('--max-pairs', type=int, default=None, help='evaluate at most N pairs')
     s.add_argument('--image-topic', default='/camera/front/image_raw')
@@ -130,16 +158,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help='CameraInfo, used when present (else --camera)')
     s.add_argument('--pose-frame', choices=('base_link', 'camera'), default='base_link',
                    help='the pose topic gives T_map_base (default) or T_map_cam')
-    s.add_argument('--camera', type=Path, default=None,
-                   help='calibration YAML (extrinsic; intrinsics without CameraInfo); '
-                   'default: the shipped config/camera_front.yaml')
-    s.add_argument('--fov-deg', type=_positive_float, default=190.0,
-                   help='lens field of view (deg, default 190)')
+    s.add_argument('--fov-deg', type=_positive_float, default=None,
+                   help='lens field of view of a fisheye camera (deg; default 190 for --bag / '
+                   "--shard, the YAML's own for --images)")
     s.add_argument('--margin', type=int, default=8,
                    help='px removed along the image-circle border (default 8)')
     s.add_argument('--gt-keypoints', default='rendered',
-                   help="'rendered' (default: corners of the rendered geometry, the training "
-                   "targets' rule), 'none', or a folder of <frame index>.npy/.txt (u v px)")
+                   help="--bag / --shard: 'rendered' (default: corners of the rendered "
+                   "geometry, the training targets' rule), 'none', or a folder of <frame "
+                   'index>.npy/.txt (u v px)')
     return parser
 
 
@@ -184,7 +211,9 @@ def run(args: argparse.Namespace) -> dict:
                             topics=topics, pose_frame=args.pose_frame,
                             mask_margin_px=args.margin, fov_deg=args.fov_deg)
     paths = mod.SequencePaths(out=args.out, bag=args.bag, shard=args.shard, camera=args.camera,
-                              gt_keypoints=args.gt_keypoints)
+                              gt_keypoints=args.gt_keypoints, images=args.images,
+                              pattern=args.glob, camera_xml=args.camera_xml,
+                              pinhole=args.pinhole)
     return mod.main(conf, paths)
 
 
