@@ -37,6 +37,7 @@ from semfeat_ros.mapping import (
 from semfeat_ros.mapping.benchmark import benchmark_update_time
 from semfeat_ros.mapping.benchmark import cli as benchmark_cli
 from semfeat_ros.mapping.geometry import rpy_matrix
+from semfeat_ros.mapping.state import RecordKind
 from semfeat_ros.mapping.synthetic import (
     MAPPER_SIGMA_PX,
     DriveConfig,
@@ -107,7 +108,7 @@ class SingleObservationLandmark(Mapper):
     def _triangulate(self, frame, mappable, kid, recs, values, ts):  # noqa: ANN001, ANN202
         new = super()._triangulate(frame, mappable, kid, recs, values, ts)
         if kid == 12 and new:
-            bearings = [r for r in recs if r.lid == new[0] and r.kind == 'bearing']
+            bearings = [r for r in recs if r.lid == new[0] and r.kind == RecordKind.BEARING]
             for rec in bearings[1:]:
                 recs.remove(rec)
         return new
@@ -471,8 +472,8 @@ def test_keyframe_rotations_with_the_vehicles_motion_and_predictions_from_the_ma
         add = mapper._rotation_rec
 
         def spy(ka, kb, ba, bb, add=add, mapper=mapper):  # noqa: ANN001, ANN202
-            T_ab = np.linalg.inv(mapper._kf_T_wc[ka] @ mapper.T_cb) @ (
-                mapper._kf_T_wc[kb] @ mapper.T_cb)
+            T_ab = np.linalg.inv(mapper.st.kf_T_wc[ka] @ mapper.T_cb) @ (
+                mapper.st.kf_T_wc[kb] @ mapper.T_cb)
             dists.append(float(np.linalg.norm(T_ab[:3, 3])))
             return add(ka, kb, ba, bb)
 
@@ -539,7 +540,7 @@ def test_level_prior_holds_the_decks_level_and_leaves_the_ramp_alone() -> None:
             true_tilt = np.degrees(np.arccos(np.clip(gt[:, 2, 2], -1, 1)))
             ramp[rot, sigma] = float(np.median(tilt[true_tilt > 8.0]))
             if rot > 0 and sigma > 0:  # keyframe k is the k-th trajectory pose
-                level = np.array([r.kid for r in m._all_recs if r.kind == 'level'])
+                level = np.array([r.kid for r in m.st.all_recs if r.kind == RecordKind.LEVEL])
                 assert len(level) > 20 and true_tilt[level].max() < 3.0
     assert err[0.0, 1.0] < 0.5 * err[0.0, 0.0], err
     assert err[on, 1.0] < 0.05 and err[on, 1.0] <= err[on, 0.0], err
@@ -551,7 +552,7 @@ def test_level_prior_decides_on_estimates_not_on_the_new_keyframes_prediction() 
     pose is only a prediction (odometry on the last predicted pose, which after a ramp can
     keep the ramp's pitch) and must not block the prior: on the long drive it did for 45
     keyframes after the ramp's end, and the altitude sank 0.4 m."""
-    from semfeat_ros.mapping.mapper import _Keyframe
+    from semfeat_ros.mapping.state import Keyframe
 
     def base_pose(pitch_deg: float) -> np.ndarray:
         T = np.eye(4)
@@ -561,11 +562,11 @@ def test_level_prior_decides_on_estimates_not_on_the_new_keyframes_prediction() 
     def level_recs(pitches: list[float]) -> int:
         m = Mapper(CAMERA, T_BASE_CAM, SYNTHETIC)
         for kid, pitch in enumerate(pitches):
-            m._kf_T_wc.append(base_pose(pitch))
-            m._kfs[kid] = _Keyframe(kid, kid, 100)
+            m.st.kf_T_wc.append(base_pose(pitch))
+            m.st.kfs[kid] = Keyframe(kid, kid, 100)
         recs: list = []
         m._add_level_rec(len(pitches) - 1, recs)
-        return sum(r.kind == 'level' for r in recs)
+        return sum(r.kind == RecordKind.LEVEL for r in recs)
 
     delay = Mapper(CAMERA, T_BASE_CAM, SYNTHETIC).conf['level_delay_keyframes']
     n = 2 * delay + 1  # keyframes k - delay .. k + delay, the last one new
@@ -577,14 +578,14 @@ def test_level_prior_decides_on_estimates_not_on_the_new_keyframes_prediction() 
 
 def test_landmark_floor_is_its_storey_and_the_observers_decide_at_a_slab() -> None:
     from semfeat_ros.mapping.floors import FloorLevels
-    from semfeat_ros.mapping.mapper import _Landmark
+    from semfeat_ros.mapping.state import Landmark
 
     m = Mapper(CAMERA, T_BASE_CAM, SYNTHETIC)
-    m._kf_alt = [0.0, 0.0, 3.6, 3.6]  # keyframes 0-1 on the ground level, 2-3 on the deck
+    m.st.kf_alt = [0.0, 0.0, 3.6, 3.6]  # keyframes 0-1 on the ground level, 2-3 on the deck
     levels = FloorLevels(np.array([0.0, 3.6]), np.ones(4, bool))
 
     def level(z: float, kids: list[int], label: str = 'road') -> float:
-        lm = _Landmark(0, 0, LABELS.id_of(label), False, np.array([0.0, 0.0, z]), kf_ids=kids)
+        lm = Landmark(0, 0, LABELS.id_of(label), False, np.array([0.0, 0.0, z]), kf_ids=kids)
         return m._floor_alt(lm, lm.xyz, levels)
 
     assert level(0.1, [2, 3]) == 0.0  # the street seen over the deck's railing
@@ -601,8 +602,8 @@ def test_landmark_floor_is_its_storey_and_the_observers_decide_at_a_slab() -> No
     assert level(7.5, [2, 3], 'ceiling') == 3.6  # a canopy over the deck
     assert level(4.8, [], 'ceiling') == 3.6
     m2 = Mapper(CAMERA, T_BASE_CAM, {**SYNTHETIC, 'ceiling_labels': []})
-    m2._kf_alt = m._kf_alt
-    lm = _Landmark(0, 0, LABELS.id_of('ceiling'), False, np.array([0.0, 0.0, 4.8]), kf_ids=[0])
+    m2.st.kf_alt = m.st.kf_alt
+    lm = Landmark(0, 0, LABELS.id_of('ceiling'), False, np.array([0.0, 0.0, 4.8]), kf_ids=[0])
     assert m2._floor_alt(lm, lm.xyz, levels) == 3.6
     with pytest.raises(MapperConfigError, match='ceiling_labels'):
         Mapper(CAMERA, T_BASE_CAM, {**SYNTHETIC, 'ceiling_labels': ['no_such_class']})
@@ -648,17 +649,17 @@ def test_landmark_receding_along_its_rays_is_killed_before_the_solver_fails() ->
     run = drive_through(DriveConfig(seed=2, odometry=True))
     mapper = run.mapper
     est = gtsam.Values(mapper._estimate)
-    live = [lid for lid, lm in mapper._lms.items() if lm.alive and est.exists(L(lid))]
+    live = [lid for lid, lm in mapper.st.lms.items() if lm.alive and est.exists(L(lid))]
     lid = live[0]
-    lm = mapper._lms[lid]
-    c = mapper._kf_T_wc[lm.kf_ids[-1]][:3, 3]
+    lm = mapper.st.lms[lid]
+    c = mapper.st.kf_T_wc[lm.kf_ids[-1]][:3, 3]
     p = est.atPoint3(L(lid))
     est.update(L(lid), c + (p - c) / np.linalg.norm(p - c) * 1000.0)
     killed = mapper.stats['landmarks_killed']
     mapper._check_depths(est)
     assert mapper.stats['landmarks_lost_depth'] == 1
     assert mapper.stats['landmarks_killed'] == killed + 1
-    assert not lm.alive and all(mapper._lms[j].alive for j in live[1:])
+    assert not lm.alive and all(mapper.st.lms[j].alive for j in live[1:])
 
 
 def test_rebuild_keeps_what_the_smoother_marginalised() -> None:
@@ -675,8 +676,8 @@ def test_rebuild_keeps_what_the_smoother_marginalised() -> None:
             if f >= 220:
                 break
         # GNSS ended 100 frames ago: only the marginal factors still carry its heading
-        assert mapper.gnss_aligned and not mapper._gnss_kids & set(mapper._kfs)
-        k0 = X(min(mapper._kfs))
+        assert mapper.gnss_aligned and not mapper._gnss_kids & set(mapper.st.kfs)
+        k0 = X(min(mapper.st.kfs))
         ref = np.sqrt(np.diag(np.asarray(mapper._smoother.marginalCovariance(k0))))
         before = mapper._smoother.calculateEstimate().atPose3(k0).matrix()
         assert mapper._rebuild([], gtsam.Values(), {}, weak=False, events=[],

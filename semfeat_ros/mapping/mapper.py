@@ -19,7 +19,6 @@ camera optical frame in ``map`` so that bearings need no extrinsic inside the fa
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 import time
 from typing import Any
 
@@ -28,14 +27,12 @@ from gtsam.symbol_shorthand import L, X
 import numpy as np
 
 from semfeat_ros.camera import CameraModel
-from semfeat_ros.labels import LabelSet, load_labels
+from semfeat_ros.labels import LabelSet
 from semfeat_ros.mapping import factors as fac
 from semfeat_ros.mapping.cloud import SemanticCloud, VoxelMap
-from semfeat_ros.mapping.config import merge_conf
 from semfeat_ros.mapping.errors import MapperConfigError, StampOrderError
 from semfeat_ros.mapping.floors import FloorLevels, detect_floors, storey_altitude
 from semfeat_ros.mapping.geometry import (
-    adjoint,
     align_yaw,
     angle_between,
     fit_plane_ransac,
@@ -53,6 +50,16 @@ from semfeat_ros.mapping.geometry import (
     yaw_of,
 )
 from semfeat_ros.mapping.odometry import OdometryCalibration
+from semfeat_ros.mapping.state import (
+    FactorRecord,
+    Landmark,
+    MapperSetup,
+    MapState,
+    OdomChain,
+    PendingFix,
+    RecordKind,
+    Track,
+)
 from semfeat_ros.mapping.types import GnssFix, MapperResult, OdometryDelta, Tracks
 from semfeat_ros.matching.geometry import (
     epipolar_sines,
@@ -76,93 +83,6 @@ def _first_line(exc: BaseException) -> str:
     return (lines[0] if lines else type(exc).__name__)[:100]
 
 
-@dataclass(eq=False)
-class _Track:
-    counts: dict[int, int] = field(default_factory=dict)  # label -> frames
-    n: int = 0  # frames seen
-    n_dyn: int = 0  # frames labelled with a dynamic class
-    major: int = 0  # majority label
-    kf_obs: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
-    lid: int = -1  # landmark id (-1: none)
-    frozen: np.ndarray | None = None  # position of its marginalised landmark (m)
-    rejected: bool = False
-
-
-@dataclass(eq=False)
-class _Landmark:
-    lid: int
-    track: int
-    label: int
-    ground: bool
-    xyz: np.ndarray
-    rids: list[int] = field(default_factory=list)
-    n_obs: int = 0
-    n_bad: int = 0
-    kf_ids: list[int] = field(default_factory=list)  # keyframes that observed it
-    ray0: np.ndarray | None = None  # first observation ray in the map frame
-    max_par: float = 0.0  # largest angle between its observation rays (rad)
-    last_kf: int = 0
-    reproj_px: float = 0.0
-    alive: bool = True
-    anchor: tuple[int, float, float] = (-1, np.nan, np.nan)  # (stamp ns, u px, v px): where it
-    #                                   was triangulated (kept for evaluation against truth)
-
-
-@dataclass(eq=False)
-class _Keyframe:
-    kid: int
-    stamp_ns: int
-    n_tracks: int
-    odom_linked: bool = False
-    rids: list[int] = field(default_factory=list)
-
-
-@dataclass(eq=False)
-class _Rec:
-    rid: int
-    factor: Any  # gtsam.NonlinearFactor
-    kind: str  # bearing ground odom vrot level gnss prior link anchor recovery dead marginal
-    kid: int = -1
-    lid: int = -1
-    index: int = -1  # slot in the smoother's factor graph
-    removed: bool = False
-    bearing: np.ndarray | None = None
-    pixel: np.ndarray | None = None
-
-
-class _OdomChain:
-    """Composition of odometry deltas with first-order covariance propagation."""
-
-    def __init__(self, ok: bool) -> None:
-        self.T = np.eye(4)
-        self.cov = np.zeros((6, 6))
-        self.ok = ok
-        self.dist = 0.0
-        self.raw_yaw = 0.0  # heading change as measured, before the calibration (rad)
-        self.raw_dist = 0.0  # distance as measured, before the calibration (m)
-        self.dt = 0.0  # time in motion (s)
-
-    def add(self, d: OdometryDelta, raw: tuple[float, float, float] = (0.0, 0.0, 0.0)
-            ) -> None:
-        """Compose delta ``d``; ``raw``: its measured (heading change rad, distance m, time in
-        motion s)."""
-        A = adjoint(se3_inv(d.T))
-        self.cov = A @ self.cov @ A.T + d.covariance
-        self.T = self.T @ d.T
-        self.dist += float(np.linalg.norm(d.T[:3, 3]))
-        self.raw_yaw += raw[0]
-        self.raw_dist += raw[1]
-        self.dt += raw[2]
-
-
-@dataclass
-class _PendingFix:
-    stamp_ns: int
-    position: np.ndarray
-    covariance: np.ndarray
-    T_wb: np.ndarray | None  # estimated base pose at the fix's frame
-
-
 class Mapper:
     """Incremental fixed-lag factor-graph mapper.
 
@@ -173,76 +93,22 @@ class Mapper:
 
     def __init__(self, camera: CameraModel, T_base_cam: np.ndarray,
                  conf: dict[str, Any] | None = None, labels: LabelSet | None = None) -> None:
-        self.conf = merge_conf(conf)
+        self.setup = MapperSetup(camera, T_base_cam, conf, labels)
+        self.conf = self.setup.conf
         self.camera = camera
-        T = np.asarray(T_base_cam, dtype=np.float64)
-        if T.shape != (4, 4) or not np.isfinite(T).all() or not np.allclose(
-                T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-6):
-            raise MapperConfigError(
-                f'T_base_cam must be a finite 4x4 rigid transform, got shape {T.shape}')
-        self.T_bc = T
-        self.T_cb = se3_inv(T)
-        self._up_c = self.T_bc[2, :3].copy()  # base_link z axis in the optical frame
-        height = self.conf['camera_height_m']
-        self.camera_height = float(height if height is not None else self.T_bc[2, 3])
-        if self.camera_height <= 0:
-            raise MapperConfigError(
-                f'camera height above the ground must be > 0 m, got {self.camera_height} '
-                '(set camera_height_m or the z of T_base_cam)')
-        self.labels = labels if labels is not None else load_labels(self.conf['labels_path'])
-        n_cls = len(self.labels.names)
-        self._static = np.zeros(256, bool)
-        self._static[:n_cls] = self.labels.static & ~self.labels.dynamic
-        self._dynamic = np.zeros(256, bool)
-        self._dynamic[:n_cls] = self.labels.dynamic
-        self._hangs = self._class_mask('ceiling_labels')
-        self._ground = self._class_mask('ground_labels')
-        self._n_classes = n_cls
-        self.sigma = self.conf['bearing_sigma_px'] / float(camera.fx)  # rad
-        self._gate = float(np.sqrt(self.conf['outlier_chi2'])) * self.sigma  # rad
-        self._bnoise = fac.bearing_noise(self.sigma, self.conf['robust_kernel'],
-                                       self.conf['robust_k'])
-        self._gnoise = fac.robust(gtsam.noiseModel.Isotropic.Sigma(1, self.conf['ground_sigma_m']),
-                                'huber', 1.345)
-        self._arm_b = np.asarray(self.conf['gnss_lever_arm_m'], dtype=np.float64)
-        self._arm_c = self.T_cb[:3, :3] @ self._arm_b + self.T_cb[:3, 3]
+        self.T_bc, self.T_cb = self.setup.T_bc, self.setup.T_cb
+        self.camera_height = self.setup.camera_height
+        self.labels = self.setup.labels
+        self.sigma = self.setup.sigma
         self.reset()
-
-    # ------------------------------------------------------------------------------------------
-    # public API
-    # ------------------------------------------------------------------------------------------
-
-    def _class_mask(self, key: str) -> np.ndarray:
-        """(256,) bool lookup by class id of the class names in ``conf[key]``."""
-        mask = np.zeros(256, bool)
-        for name in self.conf[key]:
-            try:
-                mask[self.labels.id_of(name)] = True
-            except KeyError as exc:
-                raise MapperConfigError(f'{key}: {exc.args[0]}') from None
-        return mask
 
     def reset(self) -> None:
         """Forget everything (map, trajectory, smoother); the next frame starts a new map."""
-        self._rng = np.random.default_rng(self.conf['seed'])
-        self._state = 'initializing'
-        self._metric = False
-        self._scale_from_odometry = False
+        self.st = MapState(self.setup)
         self._last_stamp: int | None = None
-        self._tracks: dict[int, _Track] = {}
-        self._kf_stamps: list[int] = []
-        self._kf_T_wc: list[np.ndarray] = []
-        self._kf_alt: list[float] = []
-        self._kfs: dict[int, _Keyframe] = {}
-        self._last_kid = -1
-        self._lms: dict[int, _Landmark] = {}
-        self._lm_by_ts: dict[int, set[int]] = {}
-        self._next_lid = 0
-        self._recs: dict[int, _Rec] = {}
-        self._all_recs: list[_Rec] = []
-        self._next_rid = 0
+        self._recs: dict[int, FactorRecord] = {}
         self._pending_remove: set[int] = set()
-        self._pending_recs: list[_Rec] = []
+        self._pending_recs: list[FactorRecord] = []
         # the last keyframe's deferred work (see _settle): the keyframe pair whose rotation is
         # verified (ka, kb, bearings a, b) and the landmarks whose factors are checked
         self._rot_job: tuple[int, int, np.ndarray, np.ndarray] | None = None
@@ -253,14 +119,12 @@ class Mapper:
         self._estimate = gtsam.Values()
         self._max_ts = -1
         # tracking
-        self._history: list[tuple[int, np.ndarray]] = []  # (stamp, T_wc) of the last frames
-        self._kf_odom = _OdomChain(False)
+        self._kf_odom = OdomChain(False)
         self._ref: dict[str, Any] | None = None
-        self._ref_odom = _OdomChain(False)
+        self._ref_odom = OdomChain(False)
         self._init_attempts = 0
-        self._link: dict[str, Any] | None = None
         # gnss
-        self._gnss_pending: _PendingFix | None = None
+        self._gnss_pending: PendingFix | None = None
         self._gnss_pairs: list[tuple[int, np.ndarray, np.ndarray]] = []
         self._gnss_aligned = False
         self._gnss_rejects = 0
@@ -275,22 +139,21 @@ class Mapper:
         self._kf_odom_raw: dict[int, tuple[float, float, float]] = {}
         self._floors: FloorLevels | None = None
         self._floors_at = -1
-        self.stats: dict[str, int] = dict(
-            frames=0, keyframes=0, landmarks=0, update_failures=0, recoveries=0,
-            outlier_factors=0, landmarks_killed=0, landmarks_lost_depth=0,
-            gnss_accepted=0, gnss_rejected=0,
-            tracking_lost=0, initialisations=0, rejected_rows=0,
-            obs_beyond_90deg=0, rotation_factors=0, level_factors=0)
+
+    @property
+    def stats(self) -> dict[str, int]:
+        """Counters since the last :meth:`reset` (frames, keyframes, landmarks, failures...)."""
+        return self.st.stats
 
     @property
     def state(self) -> str:
         """'initializing', 'tracking', 'odometry_only' or 'lost'."""
-        return self._state
+        return self.st.state
 
     @property
     def metric(self) -> bool:
         """True once the scale comes from odometry, GNSS or the ground plane."""
-        return self._metric
+        return self.st.metric
 
     @property
     def odometry_calibration(self) -> dict[str, float | int]:
@@ -328,8 +191,8 @@ class Mapper:
         dt = 0.0 if self._last_stamp is None else (frame.stamp_ns - self._last_stamp) * 1e-9
         self._last_stamp = frame.stamp_ns
         self._settle()
-        self.stats['frames'] += 1
-        self.stats['rejected_rows'] += n_bad
+        self.st.stats['frames'] += 1
+        self.st.stats['rejected_rows'] += n_bad
         raw = (0.0, 0.0, 0.0)
         if odometry is not None:
             dist = float(np.linalg.norm(odometry.T[:3, 3]))
@@ -349,16 +212,16 @@ class Mapper:
             fix = self._check_fix(gnss, self._predict(frame.stamp_ns, odometry), events)
         keyframe = False
         T_wc, cov_c, n_inl = None, None, 0
-        if (self._state == 'initializing' and odometry is not None
+        if (self.st.state == 'initializing' and odometry is not None
                 and self.conf['init_from_odometry']):
             T_wc, keyframe = self._start_from_odometry(frame, mappable, fix, events)
-        elif self._state in ('initializing', 'lost'):
+        elif self.st.state in ('initializing', 'lost'):
             T_wc, keyframe = self._initialize(frame, mappable, fix, events)
-            if T_wc is None and self._state == 'lost':
+            if T_wc is None and self.st.state == 'lost':
                 T_wc = self._predict(frame.stamp_ns, odometry)
             elif keyframe:  # just initialised: the smoother's marginal of the new pose
                 try:
-                    cov_c = np.asarray(self._smoother.marginalCovariance(X(self._last_kid)))
+                    cov_c = np.asarray(self._smoother.marginalCovariance(X(self.st.last_kid)))
                 except _SOLVER_ERRORS:
                     cov_c = None
         else:
@@ -366,25 +229,25 @@ class Mapper:
         self._prune_tracks(frame)
         T_wb = None if T_wc is None else T_wc @ self.T_cb
         if fix is not None and not keyframe:
-            self._gnss_pending = _PendingFix(fix.stamp_ns, fix.position, fix.covariance, T_wb)
+            self._gnss_pending = PendingFix(fix.stamp_ns, fix.position, fix.covariance, T_wb)
         cov_b = None if cov_c is None else transform_covariance(cov_c, self.T_cb)
         if keyframe:
             events.append('keyframe')
         return MapperResult(
-            frame.stamp_ns, T_wb, cov_b, self._state, keyframe, self._metric, len(frame),
-            int(n_inl), len(self._lms) + len(self._voxels),
+            frame.stamp_ns, T_wb, cov_b, self.st.state, keyframe, self.st.metric, len(frame),
+            int(n_inl), len(self.st.lms) + len(self._voxels),
             (time.perf_counter() - t0) * 1e3, tuple(events))
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
         """Keyframe trajectory: ``(stamps_ns (K,) int64, T_map_base (K, 4, 4))`` (m)."""
-        stamps = np.array(self._kf_stamps, dtype=np.int64)
-        if not self._kf_T_wc:
+        stamps = np.array(self.st.kf_stamps, dtype=np.int64)
+        if not self.st.kf_T_wc:
             return stamps, np.zeros((0, 4, 4))
-        return stamps, np.array(self._kf_T_wc) @ self.T_cb
+        return stamps, np.array(self.st.kf_T_wc) @ self.T_cb
 
     def floor_levels(self) -> FloorLevels:
         """Levels detected from the keyframe altitude profile (recomputed when stale)."""
-        k = len(self._kf_T_wc)
+        k = len(self.st.kf_T_wc)
         if self._floors is None or self._floors_at != k:
             _, poses = self.trajectory()
             c = self.conf
@@ -405,7 +268,7 @@ class Mapper:
         levels = self.floor_levels()
         xyz_f, lab_f, lid_f, nobs_f, alt_f = self._voxels.arrays()
         rows = []
-        for lm in self._lms.values():
+        for lm in self.st.lms.values():
             if self._publishable(lm):
                 key = L(lm.lid)
                 xyz = self._estimate.atPoint3(key) if self._estimate.exists(key) else lm.xyz
@@ -421,10 +284,10 @@ class Mapper:
             nobs_w, alt_w = np.zeros(0), np.zeros(0)
         xyz = np.concatenate([xyz_f, xyz_w])
         lab = np.concatenate([lab_f, lab_w])
-        keep = self._static[lab]
+        keep = self.setup.static[lab]
         # floors from the current levels (they grow as the drive finds new ones)
         alt = storey_altitude(xyz[:, 2], np.concatenate([alt_f, alt_w]), levels.altitudes,
-                              self.conf['floor_point_margin_m'], self._hangs[lab])[keep]
+                              self.conf['floor_point_margin_m'], self.setup.hangs[lab])[keep]
         return SemanticCloud.build(
             xyz[keep], lab[keep], levels.assign(alt),
             np.concatenate([lid_f, lid_w])[keep], np.concatenate([nobs_f, nobs_w])[keep],
@@ -441,7 +304,7 @@ class Mapper:
         ns_f, px_f = self._voxels.anchors()
         row_of = {int(lid): r for r, lid in enumerate(lid_f.tolist())}
         for i, lid in enumerate(ids.tolist()):
-            lm = self._lms.get(lid)
+            lm = self.st.lms.get(lid)
             if lm is not None:
                 stamps[i], px[i] = lm.anchor[0], lm.anchor[1:]
             elif lid in row_of:
@@ -450,14 +313,15 @@ class Mapper:
 
     def window(self) -> dict[str, int]:
         """Size of the smoother's window: keyframes, landmarks, factors; and the voxel map."""
-        return dict(keyframes=len(self._kfs), landmarks=len(self._lms), factors=len(self._recs),
+        return dict(keyframes=len(self.st.kfs), landmarks=len(self.st.lms),
+                    factors=len(self._recs),
                     map_points=len(self._voxels))
 
     def landmark_positions(self) -> dict[int, np.ndarray]:
         """Current position (m) of every live landmark in the window (for diagnostics)."""
         self._settle()
         out = {}
-        for lid, lm in self._lms.items():
+        for lid, lm in self.st.lms.items():
             if lm.alive and self._estimate.exists(L(lid)):
                 out[lid] = self._estimate.atPoint3(L(lid))
         return out
@@ -472,12 +336,12 @@ class Mapper:
         if not self.conf['keep_full_graph']:
             raise MapperConfigError('batch_optimize needs keep_full_graph=True in the conf')
         self._settle()
-        skip = {'anchor', 'recovery', 'dead', 'marginal'}
+        skip = {RecordKind.ANCHOR, RecordKind.RECOVERY, RecordKind.DEAD, RecordKind.MARGINAL}
         if self._gnss_aligned:
-            skip.add('prior')
+            skip.add(RecordKind.PRIOR)
         graph = gtsam.NonlinearFactorGraph()
         keys: set[int] = set()
-        for rec in self._all_recs:
+        for rec in self.st.all_recs:
             if rec.removed or rec.kind in skip:
                 continue
             graph.add(rec.factor)
@@ -487,21 +351,21 @@ class Mapper:
             sym = gtsam.Symbol(key)
             idx = sym.index()
             if chr(sym.chr()) == 'x':
-                values.insert(key, gtsam.Pose3(self._kf_T_wc[idx]))
+                values.insert(key, gtsam.Pose3(self.st.kf_T_wc[idx]))
             else:
                 if self._estimate.exists(key):
                     xyz = self._estimate.atPoint3(key)
                 elif idx in self._final_xyz:
                     xyz = self._final_xyz[idx]
                 else:
-                    xyz = self._lms[idx].xyz
+                    xyz = self.st.lms[idx].xyz
                 values.insert(key, xyz)
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(max_iterations)
         result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
         poses = np.array([
-            (result.atPose3(X(k)).matrix() if result.exists(X(k)) else self._kf_T_wc[k])
-            @ self.T_cb for k in range(len(self._kf_T_wc))])
+            (result.atPose3(X(k)).matrix() if result.exists(X(k)) else self.st.kf_T_wc[k])
+            @ self.T_cb for k in range(len(self.st.kf_T_wc))])
         lms = {}
         for key in keys:
             sym = gtsam.Symbol(key)
@@ -518,12 +382,12 @@ class Mapper:
         n = len(frame)
         ok = np.zeros(n, bool)
         max_dyn = self.conf['dynamic_max_fraction']
-        dynamic, static = self._dynamic.tolist(), self._static.tolist()
+        dynamic, static = self.setup.dynamic.tolist(), self.setup.static.tolist()
         for i, (tid, lab) in enumerate(zip(frame.track_id.tolist(), frame.label.tolist())):
-            tr = self._tracks.get(tid)
+            tr = self.st.tracks.get(tid)
             if tr is None:
-                tr = _Track(major=lab)
-                self._tracks[tid] = tr
+                tr = Track(major=lab)
+                self.st.tracks[tid] = tr
             cnt = tr.counts.get(lab, 0) + 1
             tr.counts[lab] = cnt
             tr.n += 1
@@ -536,10 +400,10 @@ class Mapper:
     def _prune_tracks(self, frame: Tracks) -> None:
         """Tracks absent from this frame ended (ids are never reused): forget them."""
         alive = set(frame.track_id.tolist())
-        for tid in [t for t in self._tracks if t not in alive]:
-            del self._tracks[tid]
+        for tid in [t for t in self.st.tracks if t not in alive]:
+            del self.st.tracks[tid]
 
-    def _label_of(self, tr: _Track) -> int:
+    def _label_of(self, tr: Track) -> int:
         return tr.major
 
     # ------------------------------------------------------------------------------------------
@@ -548,14 +412,14 @@ class Mapper:
 
     def _predict(self, stamp_ns: int, odometry: OdometryDelta | None) -> np.ndarray | None:
         """Camera pose at ``stamp_ns`` from odometry or a constant-velocity model."""
-        if not self._history:
+        if not self.st.history:
             return None
-        t1, T1 = self._history[-1]
+        t1, T1 = self.st.history[-1]
         if odometry is not None:
             return T1 @ self.T_cb @ odometry.T @ self.T_bc
-        if len(self._history) < 2:
+        if len(self.st.history) < 2:
             return T1.copy()
-        t0, T0 = self._history[-2]
+        t0, T0 = self.st.history[-2]
         dt_prev = (t1 - t0) * 1e-9
         dt = (stamp_ns - t1) * 1e-9
         if dt_prev <= 0:
@@ -564,12 +428,12 @@ class Mapper:
         return T1 @ se3_exp(xi)
 
     def _push_pose(self, stamp_ns: int, T_wc: np.ndarray) -> None:
-        self._history.append((stamp_ns, T_wc))
-        del self._history[:-2]
+        self.st.history.append((stamp_ns, T_wc))
+        del self.st.history[:-2]
 
-    def _landmark_of(self, tr: _Track) -> np.ndarray | None:
+    def _landmark_of(self, tr: Track) -> np.ndarray | None:
         if tr.lid >= 0:
-            lm = self._lms.get(tr.lid)
+            lm = self.st.lms.get(tr.lid)
             if lm is not None:
                 return lm.xyz if lm.alive else None
         return tr.frozen
@@ -581,7 +445,7 @@ class Mapper:
         idx = np.flatnonzero(mappable)
         sel, pts = [], []
         for i in idx.tolist():
-            p = self._landmark_of(self._tracks[int(frame.track_id[i])])
+            p = self._landmark_of(self.st.tracks[int(frame.track_id[i])])
             if p is not None:
                 sel.append(i)
                 pts.append(p)
@@ -596,27 +460,27 @@ class Mapper:
         cov_c = None
         if n_inl >= self.conf['min_tracking_inliers']:
             T_wc, inliers, cov_c = est.T_w_c, est.inliers, est.covariance
-            if self._state != 'tracking':
+            if self.st.state != 'tracking':
                 events.append('tracking_resumed')
-            self._state = 'tracking'
+            self.st.state = 'tracking'
         elif odometry is not None:
             T_wc = pred
             if len(sel_a):
                 d = (P - T_wc[:3, 3]) @ T_wc[:3, :3]
-                inliers = angle_between(d, frame.bearing[sel_a]) < 3 * self._gate
+                inliers = angle_between(d, frame.bearing[sel_a]) < 3 * self.setup.gate
             else:
                 inliers = np.zeros(0, bool)
-            if self._state != 'odometry_only':
+            if self.st.state != 'odometry_only':
                 events.append('odometry_only')
-            self._state = 'odometry_only'
+            self.st.state = 'odometry_only'
         else:
             self._lose_tracking(frame.stamp_ns, pred, events)
             return pred, None, n_inl, False
         self._push_pose(frame.stamp_ns, T_wc)
         obs_idx = sel_a[np.flatnonzero(inliers)].tolist() if len(sel_a) else []
         if len(obs_idx) > self.conf['max_obs_per_keyframe']:
-            prio = np.array([self._lms[self._tracks[int(frame.track_id[i])].lid].n_obs
-                             if self._tracks[int(frame.track_id[i])].lid in self._lms else 0
+            prio = np.array([self.st.lms[self.st.tracks[int(frame.track_id[i])].lid].n_obs
+                             if self.st.tracks[int(frame.track_id[i])].lid in self.st.lms else 0
                              for i in obs_idx], dtype=float)
             keep = self._spread(frame.pixel[obs_idx], prio, self.conf['max_obs_per_keyframe'])
             obs_idx = [obs_idx[k] for k in keep]
@@ -625,9 +489,9 @@ class Mapper:
             self._add_keyframe(frame, mappable, T_wc, lm_obs, fix, events)
             # the next predictions start from the smoothed pose: chained on the tracked (or
             # odometry-predicted) one they drift away from the map (metres along a drive)
-            if self._history and self._history[-1][0] == frame.stamp_ns:
-                self._history[-1] = (frame.stamp_ns, self._kf_T_wc[-1])
-            return self._kf_T_wc[-1], cov_c, n_inl, True
+            if self.st.history and self.st.history[-1][0] == frame.stamp_ns:
+                self.st.history[-1] = (frame.stamp_ns, self.st.kf_T_wc[-1])
+            return self.st.kf_T_wc[-1], cov_c, n_inl, True
         return T_wc, cov_c, n_inl, False
 
     def _spread(self, pixels: np.ndarray, priority: np.ndarray, n: int) -> np.ndarray:
@@ -645,8 +509,8 @@ class Mapper:
 
     def _is_keyframe(self, frame: Tracks, mappable: np.ndarray, T_wc: np.ndarray,
                      n_inl: int) -> bool:
-        kid = self._last_kid
-        T_kf = self._kf_T_wc[kid]
+        kid = self.st.last_kid
+        T_kf = self.st.kf_T_wc[kid]
         dist = float(np.linalg.norm((T_wc @ self.T_cb)[:3, 3] - (T_kf @ self.T_cb)[:3, 3]))
         if dist < self.conf['kf_min_distance_m']:
             return False
@@ -657,12 +521,12 @@ class Mapper:
         R_rel = T_kf[:3, :3].T @ T_wc[:3, :3]
         common, b_kf, b_cur = 0, [], []
         for i in np.flatnonzero(mappable).tolist():
-            obs = self._tracks[int(frame.track_id[i])].kf_obs.get(kid)
+            obs = self.st.tracks[int(frame.track_id[i])].kf_obs.get(kid)
             if obs is not None:
                 common += 1
                 b_kf.append(obs[0])
                 b_cur.append(frame.bearing[i])
-        kf = self._kfs.get(kid)
+        kf = self.st.kfs.get(kid)
         if kf is None or common < self.conf['kf_min_tracked_fraction'] * kf.n_tracks:
             return True
         par = angle_between(np.array(b_kf), np.array(b_cur) @ R_rel.T)
@@ -670,18 +534,18 @@ class Mapper:
 
     def _lose_tracking(self, stamp_ns: int, pred: np.ndarray | None, events: list[str]) -> None:
         events.append('tracking_lost')
-        self.stats['tracking_lost'] += 1
-        self._state = 'lost'
+        self.st.stats['tracking_lost'] += 1
+        self.st.state = 'lost'
         self._ref = None
         self._init_attempts = 0
-        if self._last_kid >= 0 and self._history:
-            t1, T1 = self._history[-1]
+        if self.st.last_kid >= 0 and self.st.history:
+            t1, T1 = self.st.history[-1]
             xi = np.zeros(6)
-            if len(self._history) >= 2:
-                t0, T0 = self._history[-2]
+            if len(self.st.history) >= 2:
+                t0, T0 = self.st.history[-2]
                 if t1 > t0:
                     xi = se3_log(se3_inv(T0) @ T1) / ((t1 - t0) * 1e-9)
-            self._link = dict(kid=self._last_kid, stamp=t1, T_wc=T1, xi=xi)
+            self.st.link = dict(kid=self.st.last_kid, stamp=t1, T_wc=T1, xi=xi)
 
     # ------------------------------------------------------------------------------------------
     # initialisation
@@ -692,7 +556,7 @@ class Mapper:
         self._ref = dict(
             stamp=frame.stamp_ns, frames=0,
             obs={int(frame.track_id[i]): (frame.bearing[i], frame.pixel[i]) for i in idx})
-        self._ref_odom = _OdomChain(self.conf['use_odometry'])
+        self._ref_odom = OdomChain(self.conf['use_odometry'])
 
     def _start_from_odometry(self, frame: Tracks, mappable: np.ndarray, fix: GnssFix | None,
                              events: list[str]) -> tuple[np.ndarray, bool]:
@@ -701,14 +565,15 @@ class Mapper:
         over (state 'odometry_only' -> 'tracking'). No two-view initialisation is needed, so
         a front end whose tracks are mostly far (little parallax) still builds a map."""
         T_wc = self.T_bc.copy()
-        kid = self._new_keyframe(frame.stamp_ns, T_wc, int(mappable.sum()))
-        recs = [self._rec(fac.pose_prior(X(kid), T_wc, self._prior_cov()), 'prior', kid)]
+        kid = self.st.new_keyframe(frame.stamp_ns, T_wc, int(mappable.sum()))
+        prior = fac.pose_prior(X(kid), T_wc, self.setup.prior_cov())
+        recs = [self.st.record(prior, RecordKind.PRIOR, kid)]
         values = gtsam.Values()
         values.insert(X(kid), gtsam.Pose3(T_wc))
-        ts = {X(kid): self._ts(kid)}
+        ts = {X(kid): self.setup.smoother_ts(kid)}
         self._observe_keyframe(frame, mappable, kid)
         self._attach_gnss(kid, fix, recs)
-        self._metric = self._scale_from_odometry = True
+        self.st.metric = self.st.scale_from_odometry = True
         self._start_segment('odometry_only', [(frame.stamp_ns, T_wc)], recs, values, ts, [],
                             kid, events, 'initialised_from_odometry')
         return T_wc, True
@@ -716,17 +581,17 @@ class Mapper:
     def _observe_keyframe(self, frame: Tracks, mappable: np.ndarray, kid: int) -> None:
         """Keyframe ``kid`` observes every mappable track of ``frame`` (bearing, pixel)."""
         for i in np.flatnonzero(mappable).tolist():
-            self._tracks[int(frame.track_id[i])].kf_obs[kid] = (frame.bearing[i], frame.pixel[i])
+            self.st.tracks[int(frame.track_id[i])].kf_obs[kid] = (frame.bearing[i], frame.pixel[i])
 
     def _start_segment(self, state: str, history: list[tuple[int, np.ndarray]],
-                       recs: list[_Rec], values: gtsam.Values, ts: dict[int, float],
+                       recs: list[FactorRecord], values: gtsam.Values, ts: dict[int, float],
                        lids: list[int], kid: int, events: list[str], event: str) -> None:
         """Common end of both starts (from odometry, two-view): state, bookkeeping, commit."""
-        self._state = state
-        self._ref = self._link = None
-        self.stats['initialisations'] += 1
-        self._kf_odom = _OdomChain(self.conf['use_odometry'])
-        self._history = history
+        self.st.state = state
+        self._ref = self.st.link = None
+        self.st.stats['initialisations'] += 1
+        self._kf_odom = OdomChain(self.conf['use_odometry'])
+        self.st.history = history
         self._commit(recs, values, ts, lids, kid, events)
         events.append(event)
 
@@ -793,7 +658,7 @@ class Mapper:
         T_c2c1 = np.eye(4)
         T_c2c1[:3, :3], T_c2c1[:3, 3] = rp.R, rp.t * s
         T_c1c2 = se3_inv(T_c2c1)
-        link = self._link if self._state == 'lost' else None
+        link = self.st.link if self.st.state == 'lost' else None
         if link is not None:
             dt = (ref['stamp'] - link['stamp']) * 1e-9
             T_wc1 = link['T_wc'] @ se3_exp(link['xi'] * dt)
@@ -802,30 +667,30 @@ class Mapper:
         T_wc2 = T_wc1 @ T_c1c2
         self._create_initial_map(frame, mappable, ids, idx, rp.points[good] * s, good, T_wc1,
                                  T_wc2, link, fix, events)
-        self._metric = self._metric or metric
-        self._scale_from_odometry = self._scale_from_odometry or from_odom
-        return self._kf_T_wc[-1], True
+        self.st.metric = self.st.metric or metric
+        self.st.scale_from_odometry = self.st.scale_from_odometry or from_odom
+        return self.st.kf_T_wc[-1], True
 
     def _ground_scale(self, pts: np.ndarray, good: np.ndarray, ids: list[int]) -> float | None:
         """Scale making the ground-labelled two-view points lie ``camera_height`` below."""
-        labs = np.array([self._label_of(self._tracks[t]) for t in ids])
-        g = good & self._ground[labs]
+        labs = np.array([self._label_of(self.st.tracks[t]) for t in ids])
+        g = good & self.setup.ground[labs]
         if g.sum() < 10:
             return None
         P = pts[g]
-        below = -(P @ self._up_c)  # unit-scale depth below the camera along base z
+        below = -(P @ self.setup.up_c)  # unit-scale depth below the camera along base z
         d0 = float(np.median(below))
         if d0 <= 0:
             return None
         thr = self.conf['init_plane_threshold_m'] / self.camera_height * d0
-        fit = fit_plane_ransac(P, thr, self._rng)
+        fit = fit_plane_ransac(P, thr, self.st.rng)
         if fit is None or fit[2].sum() < 10:
             return None
         n, d, _ = fit
-        if n @ self._up_c < 0:
+        if n @ self.setup.up_c < 0:
             n, d = -n, -d
         # plane n . x = d with n ~ up: the camera (origin) is -d above it
-        if n @ self._up_c < np.cos(np.radians(15.0)) or -d <= 0:
+        if n @ self.setup.up_c < np.cos(np.radians(15.0)) or -d <= 0:
             return None
         return self.camera_height / -d
 
@@ -834,36 +699,39 @@ class Mapper:
                             T_wc1: np.ndarray, T_wc2: np.ndarray, link: dict | None,
                             fix: GnssFix | None, events: list[str]) -> None:
         ref = self._ref
-        ka = self._new_keyframe(ref['stamp'], T_wc1, len(ref['obs']))
-        kb = self._new_keyframe(frame.stamp_ns, T_wc2, int(mappable.sum()))
-        recs: list[_Rec] = []
+        ka = self.st.new_keyframe(ref['stamp'], T_wc1, len(ref['obs']))
+        kb = self.st.new_keyframe(frame.stamp_ns, T_wc2, int(mappable.sum()))
+        recs: list[FactorRecord] = []
         values = gtsam.Values()
         values.insert(X(ka), gtsam.Pose3(T_wc1))
         values.insert(X(kb), gtsam.Pose3(T_wc2))
-        ts = {X(ka): self._ts(ka), X(kb): self._ts(kb)}
-        if link is not None and link['kid'] in self._kfs:
+        ts = {X(ka): self.setup.smoother_ts(ka), X(kb): self.setup.smoother_ts(kb)}
+        if link is not None and link['kid'] in self.st.kfs:
             c = self.conf
             dt = max((ref['stamp'] - link['stamp']) * 1e-9, 0.1)
             sig = np.array([c['reinit_link_sigma_rad']] * 3 + [c['reinit_link_sigma_m']] * 3)
             cov = np.diag((sig * dt) ** 2)
-            T_rel = se3_inv(self._kf_T_wc[link['kid']]) @ T_wc1
-            recs.append(self._rec(fac.between(X(link['kid']), X(ka), T_rel, cov), 'link', ka))
+            T_rel = se3_inv(self.st.kf_T_wc[link['kid']]) @ T_wc1
+            f = fac.between(X(link['kid']), X(ka), T_rel, cov)
+            recs.append(self.st.record(f, RecordKind.LINK, ka))
             events.append('reinitialised')
         elif link is not None:  # the old window is gone: anchor the new segment where predicted
-            recs.append(self._rec(fac.pose_prior(X(ka), T_wc1, self._prior_cov()), 'link', ka))
+            f = fac.pose_prior(X(ka), T_wc1, self.setup.prior_cov())
+            recs.append(self.st.record(f, RecordKind.LINK, ka))
             events.append('reinitialised')
         else:
-            recs.append(self._rec(fac.pose_prior(X(ka), T_wc1, self._prior_cov()), 'prior', ka))
+            f = fac.pose_prior(X(ka), T_wc1, self.setup.prior_cov())
+            recs.append(self.st.record(f, RecordKind.PRIOR, ka))
         if self._ref_odom.ok:
             self._add_odom_rec(ka, kb, self._ref_odom, recs)
         for t in ids:  # keyframe observations of every common mappable track
-            tr = self._tracks[t]
+            tr = self.st.tracks[t]
             tr.kf_obs[ka] = ref['obs'][t]
         self._observe_keyframe(frame, mappable, kb)
         new_lids = []
         R1, t1 = T_wc1[:3, :3], T_wc1[:3, 3]
         for t, p in zip(np.array(ids)[good], pts_c1):
-            tr = self._tracks[int(t)]
+            tr = self.st.tracks[int(t)]
             lid = self._new_landmark(int(t), tr, R1 @ p + t1, [ka, kb], recs, values, kb, ts)
             new_lids.append(lid)
         for kid in (ka, kb):
@@ -876,70 +744,49 @@ class Mapper:
     # keyframes
     # ------------------------------------------------------------------------------------------
 
-    def _prior_cov(self) -> np.ndarray:
-        sr, sm = self.conf['prior_sigma_rad'], self.conf['prior_sigma_m']
-        cov_b = np.diag([sr**2] * 3 + [sm**2] * 3)
-        return transform_covariance(cov_b, self.T_bc)
-
-    def _new_keyframe(self, stamp_ns: int, T_wc: np.ndarray, n_tracks: int) -> int:
-        kid = len(self._kf_stamps)
-        self._kf_stamps.append(int(stamp_ns))
-        self._kf_T_wc.append(np.array(T_wc))
-        self._kf_alt.append(float((T_wc @ self.T_cb)[2, 3]))
-        self._kfs[kid] = _Keyframe(kid, int(stamp_ns), n_tracks)
-        self._last_kid = kid
-        self.stats['keyframes'] += 1
-        return kid
-
-    def _rec(self, factor: Any, kind: str, kid: int = -1, lid: int = -1,
-             bearing: np.ndarray | None = None, pixel: np.ndarray | None = None) -> _Rec:
-        rec = _Rec(self._next_rid, factor, kind, kid, lid, bearing=bearing, pixel=pixel)
-        self._next_rid += 1
-        if self.conf['keep_full_graph']:
-            self._all_recs.append(rec)
-        return rec
-
-    def _add_odom_rec(self, ka: int, kb: int, chain: _OdomChain, recs: list[_Rec]) -> None:
+    def _add_odom_rec(self, ka: int, kb: int, chain: OdomChain, recs: list[FactorRecord]) -> None:
         floor = self.conf['odom_min_sigma'] ** 2
         T_rel_c = self.T_cb @ chain.T @ self.T_bc
         cov_c = transform_covariance(chain.cov, self.T_bc) + np.eye(6) * floor
-        recs.append(self._rec(fac.between(X(ka), X(kb), T_rel_c, cov_c), 'odom', kb))
-        self._kfs[kb].odom_linked = True
+        recs.append(self.st.record(fac.between(X(ka), X(kb), T_rel_c, cov_c), RecordKind.ODOM, kb))
+        self.st.kfs[kb].odom_linked = True
 
     def _add_keyframe(self, frame: Tracks, mappable: np.ndarray, T_wc: np.ndarray,
                       lm_obs: list[tuple[int, int]], fix: GnssFix | None,
                       events: list[str]) -> None:
-        prev = self._last_kid
-        kid = self._new_keyframe(frame.stamp_ns, T_wc, int(mappable.sum()))
-        recs: list[_Rec] = []
+        prev = self.st.last_kid
+        kid = self.st.new_keyframe(frame.stamp_ns, T_wc, int(mappable.sum()))
+        recs: list[FactorRecord] = []
         values = gtsam.Values()
         values.insert(X(kid), gtsam.Pose3(T_wc))
-        ts = {X(kid): self._ts(kid)}
-        if self._kf_odom.ok and prev in self._kfs:
+        ts = {X(kid): self.setup.smoother_ts(kid)}
+        if self._kf_odom.ok and prev in self.st.kfs:
             self._add_odom_rec(prev, kid, self._kf_odom, recs)
             ch = self._kf_odom
             self._kf_odom_raw[kid] = (ch.raw_yaw, ch.raw_dist, ch.dt)
-        self._kf_odom = _OdomChain(self.conf['use_odometry'])
+        self._kf_odom = OdomChain(self.conf['use_odometry'])
         self._observe_keyframe(frame, mappable, kid)
-        if prev in self._kfs:
+        if prev in self.st.kfs:
             self._queue_rotation(frame, mappable, prev, kid, recs)
         self._add_level_rec(kid, recs)
         seen: list[int] = []
         seen_rows: list[int] = []
         for tid, i in lm_obs:
-            tr = self._tracks[tid]
-            lm = self._lms.get(tr.lid)
+            tr = self.st.tracks[tid]
+            lm = self.st.lms.get(tr.lid)
             if lm is None or not lm.alive:
                 continue
-            rec = self._rec(fac.bearing_factor(X(kid), L(lm.lid), frame.bearing[i], self._bnoise),
-                            'bearing', kid, lm.lid, frame.bearing[i], frame.pixel[i])
+            f = fac.bearing_factor(X(kid), L(lm.lid), frame.bearing[i],
+                                   self.setup.bearing_noise)
+            rec = self.st.record(f,
+                            RecordKind.BEARING, kid, lm.lid, frame.bearing[i], frame.pixel[i])
             recs.append(rec)
             lm.rids.append(rec.rid)
             self._observed(lm, kid, frame.bearing[i])
             self._touch(lm, kid, ts)
             seen.append(lm.lid)
             seen_rows.append(i)
-        self._update_parallax([self._lms[lid] for lid in seen],
+        self._update_parallax([self.st.lms[lid] for lid in seen],
                               frame.bearing[seen_rows] @ T_wc[:3, :3].T)
         new_lids = self._triangulate(frame, mappable, kid, recs, values, ts)
         self._add_ground_recs(kid, seen + new_lids, recs)
@@ -947,7 +794,7 @@ class Mapper:
         self._commit(recs, values, ts, seen + new_lids, kid, events)
 
     def _queue_rotation(self, frame: Tracks, mappable: np.ndarray, ka: int, kb: int,
-                        recs: list[_Rec]) -> None:
+                        recs: list[FactorRecord]) -> None:
         """Collect the common tracks of keyframes ka and kb (unit bearings in each) for their
         relative rotation (:meth:`_rotation_rec`). The RANSAC runs when the next frame arrives
         (:meth:`_settle`), and its factor joins the next keyframe's update: a keyframe's update
@@ -960,24 +807,25 @@ class Mapper:
             return
         b_a, b_b = [], []
         for i in np.flatnonzero(mappable).tolist():
-            obs = self._tracks[int(frame.track_id[i])].kf_obs
+            obs = self.st.tracks[int(frame.track_id[i])].kf_obs
             if ka in obs:
                 b_a.append(obs[ka][0])
                 b_b.append(frame.bearing[i])
         if len(b_a) >= c['vision_rotation_min_tracks']:
             self._rot_job = (ka, kb, np.array(b_a), np.array(b_b))
 
-    def _run_rotation_job(self, recs: list[_Rec]) -> None:
+    def _run_rotation_job(self, recs: list[FactorRecord]) -> None:
         """Verify the queued keyframe pair, if both are still in the window; its factor goes
         to ``recs``."""
         job, self._rot_job = self._rot_job, None
-        if job is None or job[0] not in self._kfs or job[1] not in self._kfs:
+        if job is None or job[0] not in self.st.kfs or job[1] not in self.st.kfs:
             return
         rec = self._rotation_rec(*job)
         if rec is not None:
             recs.append(rec)
 
-    def _rotation_rec(self, ka: int, kb: int, ba: np.ndarray, bb: np.ndarray) -> _Rec | None:
+    def _rotation_rec(self, ka: int, kb: int, ba: np.ndarray, bb: np.ndarray
+                      ) -> FactorRecord | None:
         """Relative rotation between keyframes ka and kb from the two-view geometry of their
         common tracks, unit bearings ``ba`` and ``bb`` (N, 3) (5-point RANSAC). Far points,
         which never become landmarks, fix the rotation well: this bounds the heading drift
@@ -988,16 +836,16 @@ class Mapper:
                                        'min_inliers': c['vision_rotation_min_tracks']})
         if not ver.ok:
             return None
-        T_ab = se3_inv(self._kf_T_wc[ka]) @ self._kf_T_wc[kb]
+        T_ab = se3_inv(self.st.kf_T_wc[ka]) @ self.st.kf_T_wc[kb]
         R = ver.R
-        if c['vision_rotation_kinematic'] and self._metric:
+        if c['vision_rotation_kinematic'] and self.st.metric:
             dist = float(np.linalg.norm((self.T_bc @ T_ab @ self.T_cb)[:3, 3]))
             R = self._kinematic_rotation(R, ba, bb, ver.inliers, dist, thr)
         T_ab[:3, :3] = R.T  # X_b = R X_a + t: the rotation of b in a is R^T
         f = fac.rotation_between(X(ka), X(kb), T_ab, np.radians(c['vision_rotation_sigma_deg']),
                                  100.0, c['robust_kernel'], c['robust_k'])
-        self.stats['rotation_factors'] += 1
-        return self._rec(f, 'vrot', kb)
+        self.st.stats['rotation_factors'] += 1
+        return self.st.record(f, RecordKind.VROT, kb)
 
     def _kinematic_rotation(self, R: np.ndarray, b_a: np.ndarray, b_b: np.ndarray,
                             inliers: np.ndarray, dist: float, thr: float) -> np.ndarray:
@@ -1023,7 +871,7 @@ class Mapper:
         d[2] = 0.0  # keep the free estimate's yaw
         return so3_exp(R_bc.T @ d) @ R
 
-    def _add_level_rec(self, kid: int, recs: list[_Rec]) -> None:
+    def _add_level_rec(self, kid: int, recs: list[FactorRecord]) -> None:
         """Level-floor prior on keyframe ``k = kid - level_delay_keyframes``, once the smoother
         has seen the keyframes after it. Every keyframe from ``level_delay`` before ``k`` to the
         last one the smoother has estimated must be below ``level_max_tilt_deg`` and tilted by
@@ -1036,27 +884,27 @@ class Mapper:
         c = self.conf
         delay = c['level_delay_keyframes']
         k = kid - delay
-        if c['level_prior_sigma_deg'] <= 0 or k < 0 or k not in self._kfs:
+        if c['level_prior_sigma_deg'] <= 0 or k < 0 or k not in self.st.kfs:
             return
         first = max(0, k - delay)
-        R = np.array(self._kf_T_wc[first:kid])[:, :3, :3]
-        up = R @ self._up_c  # (n, 3) base up axes in the map
+        R = np.array(self.st.kf_T_wc[first:kid])[:, :3, :3]
+        up = R @ self.setup.up_c  # (n, 3) base up axes in the map
         tilt = np.degrees(np.arccos(np.clip(up[:, 2], -1.0, 1.0)))
         change = np.degrees(np.arccos(np.clip(up @ up[k - first], -1.0, 1.0)))
         if tilt.max() > c['level_max_tilt_deg'] or change.max() > c['level_max_change_deg']:
             return
-        f = fac.level_factor(X(k), self._up_c, np.radians(c['level_prior_sigma_deg']),
+        f = fac.level_factor(X(k), self.setup.up_c, np.radians(c['level_prior_sigma_deg']),
                              c['robust_kernel'], c['robust_k'])
-        recs.append(self._rec(f, 'level', k))
-        self.stats['level_factors'] += 1
+        recs.append(self.st.record(f, RecordKind.LEVEL, k))
+        self.st.stats['level_factors'] += 1
 
-    def _observed(self, lm: _Landmark, kid: int, bearing: np.ndarray) -> None:
+    def _observed(self, lm: Landmark, kid: int, bearing: np.ndarray) -> None:
         """Bookkeeping of a new observation: count and observing keyframe."""
         lm.n_obs += 1
         lm.kf_ids.append(kid)
-        self.stats['obs_beyond_90deg'] += int(bearing[2] < 0)
+        self.st.stats['obs_beyond_90deg'] += int(bearing[2] < 0)
 
-    def _update_parallax(self, lms: list[_Landmark], rays: np.ndarray) -> None:
+    def _update_parallax(self, lms: list[Landmark], rays: np.ndarray) -> None:
         """Largest angle between each landmark's first ray and its new ray (map frame)."""
         if not lms:
             return
@@ -1066,16 +914,16 @@ class Mapper:
             if a > lm.max_par:
                 lm.max_par = a
 
-    def _publishable(self, lm: _Landmark) -> bool:
+    def _publishable(self, lm: Landmark) -> bool:
         """Alive, static, observed often enough, consistent and well triangulated."""
         c = self.conf
-        return (lm.alive and lm.n_obs >= c['cloud_min_obs'] and self._static[lm.label]
+        return (lm.alive and lm.n_obs >= c['cloud_min_obs'] and self.setup.static[lm.label]
                 and lm.reproj_px <= c['max_reprojection_px']
                 and lm.max_par >= np.radians(c['cloud_min_parallax_deg']))
 
-    def _seen_alt(self, lm: _Landmark, levels: FloorLevels) -> float:
+    def _seen_alt(self, lm: Landmark, levels: FloorLevels) -> float:
         """Highest altitude (m) of a plateau keyframe that observed ``lm`` (NaN: none)."""
-        seen = [self._kf_alt[k] for k in lm.kf_ids if k < len(levels.flat) and levels.flat[k]]
+        seen = [self.st.kf_alt[k] for k in lm.kf_ids if k < len(levels.flat) and levels.flat[k]]
         return float(max(seen)) if seen else float('nan')
 
     def _storey(self, z: float, seen: float, levels: FloorLevels, label: int) -> float:
@@ -1085,66 +933,67 @@ class Mapper:
         within ``floor_point_margin_m`` of a level's slab, and always for ``ceiling_labels``)."""
         return float(storey_altitude(np.array([z]), np.array([seen]), levels.altitudes,
                                      self.conf['floor_point_margin_m'],
-                                     self._hangs[[label]])[0])
+                                     self.setup.hangs[[label]])[0])
 
-    def _floor_alt(self, lm: _Landmark, xyz: np.ndarray, levels: FloorLevels) -> float:
+    def _floor_alt(self, lm: Landmark, xyz: np.ndarray, levels: FloorLevels) -> float:
         """Altitude (m) of the level of landmark ``lm`` at ``xyz`` (:meth:`_storey`)."""
         return self._storey(float(xyz[2]), self._seen_alt(lm, levels), levels, lm.label)
 
-    def _touch(self, lm: _Landmark, kid: int, ts: dict[int, float]) -> None:
+    def _touch(self, lm: Landmark, kid: int, ts: dict[int, float]) -> None:
         """Landmark seen at keyframe ``kid``: refresh its smoother timestamp."""
-        if lm.last_kf in self._lm_by_ts:
-            self._lm_by_ts[lm.last_kf].discard(lm.lid)
+        if lm.last_kf in self.st.lm_by_ts:
+            self.st.lm_by_ts[lm.last_kf].discard(lm.lid)
         lm.last_kf = kid
-        self._lm_by_ts.setdefault(kid, set()).add(lm.lid)
-        ts[L(lm.lid)] = self._ts(kid)
+        self.st.lm_by_ts.setdefault(kid, set()).add(lm.lid)
+        ts[L(lm.lid)] = self.setup.smoother_ts(kid)
 
-    def _new_landmark(self, tid: int, tr: _Track, xyz: np.ndarray, kids: list[int],
-                      recs: list[_Rec], values: gtsam.Values, kid_now: int,
+    def _new_landmark(self, tid: int, tr: Track, xyz: np.ndarray, kids: list[int],
+                      recs: list[FactorRecord], values: gtsam.Values, kid_now: int,
                       ts: dict[int, float] | None = None, rays: np.ndarray | None = None,
                       max_par: float | None = None) -> int:
         """Create landmark ``L(lid)`` of track ``tid`` at ``xyz`` (m) with bearing factors from
         keyframes ``kids``; ``rays`` are those observations in the map frame if known, and
         ``max_par`` their largest angle to the first (rad)."""
-        lid = self._next_lid
-        self._next_lid += 1
+        lid = self.st.next_lid
+        self.st.next_lid += 1
         label = self._label_of(tr)
-        lm = _Landmark(lid, tid, label, bool(self._ground[label]), np.array(xyz, dtype=float))
+        lm = Landmark(lid, tid, label, bool(self.setup.ground[label]), np.array(xyz, dtype=float))
         values.insert(L(lid), np.array(xyz, dtype=float))
         for k in kids:
             b, px = tr.kf_obs[k]
-            rec = self._rec(fac.bearing_factor(X(k), L(lid), b, self._bnoise), 'bearing', k, lid,
+            f = fac.bearing_factor(X(k), L(lid), b, self.setup.bearing_noise)
+            rec = self.st.record(f, RecordKind.BEARING, k, lid,
                             b, px)
             recs.append(rec)
             lm.rids.append(rec.rid)
             self._observed(lm, k, b)
         if rays is None:
-            rays = np.array([self._kf_T_wc[k][:3, :3] @ tr.kf_obs[k][0] for k in kids])
+            rays = np.array([self.st.kf_T_wc[k][:3, :3] @ tr.kf_obs[k][0] for k in kids])
         k_anchor = kid_now if kid_now in kids else kids[-1]
         u, v = tr.kf_obs[k_anchor][1]
-        lm.anchor = (self._kf_stamps[k_anchor], float(u), float(v))
+        lm.anchor = (self.st.kf_stamps[k_anchor], float(u), float(v))
         lm.ray0 = rays[0]
         lm.max_par = (float(angle_between(rays[:1], rays).max()) if max_par is None
                       else max_par)
-        self._lms[lid] = lm
+        self.st.lms[lid] = lm
         tr.lid = lid
         lm.last_kf = kid_now
-        self._lm_by_ts.setdefault(kid_now, set()).add(lid)
+        self.st.lm_by_ts.setdefault(kid_now, set()).add(lid)
         if ts is not None:
-            ts[L(lid)] = self._ts(kid_now)
-        self.stats['landmarks'] += 1
+            ts[L(lid)] = self.setup.smoother_ts(kid_now)
+        self.st.stats['landmarks'] += 1
         return lid
 
-    def _triangulate(self, frame: Tracks, mappable: np.ndarray, kid: int, recs: list[_Rec],
+    def _triangulate(self, frame: Tracks, mappable: np.ndarray, kid: int, recs: list[FactorRecord],
                      values: gtsam.Values, ts: dict[int, float]) -> list[int]:
         c = self.conf
         cands: list[tuple[int, list[int]]] = []
         for i in np.flatnonzero(mappable).tolist():
             tid = int(frame.track_id[i])
-            tr = self._tracks[tid]
+            tr = self.st.tracks[tid]
             if tr.lid >= 0 or tr.rejected:
                 continue
-            for k in [k for k in tr.kf_obs if k not in self._kfs]:
+            for k in [k for k in tr.kf_obs if k not in self.st.kfs]:
                 del tr.kf_obs[k]
             if len(tr.kf_obs) >= c['lm_min_keyframes']:
                 cands.append((tid, sorted(tr.kf_obs)))
@@ -1152,9 +1001,9 @@ class Mapper:
             return []
         index, centers, rays, obs_kid = [], [], [], []
         for j, (tid, kids) in enumerate(cands):
-            tr = self._tracks[tid]
+            tr = self.st.tracks[tid]
             for k in kids:
-                T = self._kf_T_wc[k]
+                T = self.st.kf_T_wc[k]
                 index.append(j)
                 centers.append(T[:3, 3])
                 rays.append(T[:3, :3] @ tr.kf_obs[k][0])
@@ -1164,7 +1013,7 @@ class Mapper:
         min_par = np.radians(c['lm_min_parallax_deg'])
         tri = triangulate_bearings(index_a, centers_a, rays_a, len(cands), min_par)
         # second pass without grossly wrong rays (matcher outliers stored at a keyframe)
-        keep_obs = tri.error < 3 * self._gate
+        keep_obs = tri.error < 3 * self.setup.gate
         if not keep_obs.all():
             tri2 = triangulate_bearings(index_a[keep_obs], centers_a[keep_obs],
                                         rays_a[keep_obs], len(cands), min_par)
@@ -1173,14 +1022,14 @@ class Mapper:
         depth = np.full(len(index_a), np.nan)
         err = np.full(len(index_a), np.inf)
         depth[keep_obs], err[keep_obs] = tri2.depth, tri2.error
-        good_obs = keep_obs & (err < self._gate) & (depth > c['lm_min_depth_m']) \
+        good_obs = keep_obs & (err < self.setup.gate) & (depth > c['lm_min_depth_m']) \
             & (depth < c['lm_max_depth_m'])
         n_good = np.bincount(index_a, weights=good_obs, minlength=len(cands))
         n_all = np.bincount(index_a, minlength=len(cands))
         accept = tri2.ok & (n_good >= c['lm_min_keyframes']) & (n_good >= n_all - 1)
         acc = np.flatnonzero(accept)
         if len(acc) > c['max_new_landmarks']:
-            px = np.array([self._tracks[cands[j][0]].kf_obs[kid][1] for j in acc])
+            px = np.array([self.st.tracks[cands[j][0]].kf_obs[kid][1] for j in acc])
             acc = acc[self._spread(px, tri2.max_parallax[acc], c['max_new_landmarks'])]
         if not len(acc):
             return []
@@ -1198,43 +1047,45 @@ class Mapper:
             tid = cands[j][0]
             g = group[j]
             r = rows[first[g]:first[g] + size[g]]
-            new.append(self._new_landmark(tid, self._tracks[tid], tri2.points[j],
+            new.append(self._new_landmark(tid, self.st.tracks[tid], tri2.points[j],
                                           [obs_kid[o] for o in r.tolist()], recs, values, kid,
                                           ts, rays_a[r], float(max_par[g])))
         return new
 
-    def _add_ground_recs(self, kid: int, lids: list[int], recs: list[_Rec]) -> None:
+    def _add_ground_recs(self, kid: int, lids: list[int], recs: list[FactorRecord]) -> None:
         mode = self.conf['ground_factor']
-        if mode == 'never' or (mode == 'auto' and self._kfs[kid].odom_linked):
+        if mode == 'never' or (mode == 'auto' and self.st.kfs[kid].odom_linked):
             return
-        lids = [lid for lid in lids if self._lms[lid].ground and self._lms[lid].alive]
+        lids = [lid for lid in lids if self.st.lms[lid].ground and self.st.lms[lid].alive]
         if not lids:
             return
         c = self.conf
-        T_cw = se3_inv(self._kf_T_wc[kid])
-        P = np.array([self._lms[lid].xyz for lid in lids]) @ T_cw[:3, :3].T + T_cw[:3, 3]
-        height = P @ self._up_c  # along base z, relative to the camera (m, ~ -camera_height)
-        horiz = np.linalg.norm(P - height[:, None] * self._up_c, axis=1)  # from the nadir
+        T_cw = se3_inv(self.st.kf_T_wc[kid])
+        P = np.array([self.st.lms[lid].xyz for lid in lids]) @ T_cw[:3, :3].T + T_cw[:3, 3]
+        height = P @ self.setup.up_c  # along base z, relative to the camera (m, ~ -camera_height)
+        horiz = np.linalg.norm(P - height[:, None] * self.setup.up_c, axis=1)  # from the nadir
         near = (horiz <= c['ground_plane_radius_m']) \
             & (np.abs(height + self.camera_height) < c['ground_gate_m'])
         if near.sum() < c['ground_min_points']:
             return
         # The local plane must hold: a robust plane through the nearby ground landmarks that is
         # parallel to the vehicle (not at a ramp transition); only its inliers get factors.
-        fit = fit_plane_ransac(P[near], c['ground_plane_threshold_m'], self._rng, iterations=40)
+        fit = fit_plane_ransac(P[near], c['ground_plane_threshold_m'], self.st.rng, iterations=40)
         if fit is None or fit[2].sum() < c['ground_min_points']:
             return
-        normal = fit[0] if fit[0] @ self._up_c > 0 else -fit[0]
-        if np.degrees(np.arccos(min(1.0, float(normal @ self._up_c)))) > c['ground_max_tilt_deg']:
+        normal = fit[0] if fit[0] @ self.setup.up_c > 0 else -fit[0]
+        tilt = np.degrees(np.arccos(min(1.0, float(normal @ self.setup.up_c))))
+        if tilt > c['ground_max_tilt_deg']:
             return
         inl = np.flatnonzero(near)[fit[2]]
         inl = inl[horiz[inl] <= c['ground_max_distance_m']]
         order = [lids[i] for i in inl[np.argsort(horiz[inl])]]
         for lid in order[: self.conf['ground_max_per_keyframe']]:
-            f = fac.ground_factor(X(kid), L(lid), self._up_c, self.camera_height, self._gnoise)
-            rec = self._rec(f, 'ground', kid, lid)
+            f = fac.ground_factor(X(kid), L(lid), self.setup.up_c, self.camera_height,
+                                  self.setup.ground_noise)
+            rec = self.st.record(f, RecordKind.GROUND, kid, lid)
             recs.append(rec)
-            self._lms[lid].rids.append(rec.rid)
+            self.st.lms[lid].rids.append(rec.rid)
 
     # ------------------------------------------------------------------------------------------
     # GNSS
@@ -1267,7 +1118,7 @@ class Mapper:
                 cov = (V * w) @ V.T
         if reason is None and self._gnss_aligned and T_wc_pred is not None:
             T_wb = T_wc_pred @ self.T_cb
-            pred = T_wb[:3, :3] @ self._arm_b + T_wb[:3, 3]
+            pred = T_wb[:3, :3] @ self.setup.arm_b + T_wb[:3, 3]
             d = pos - pred
             S = cov + np.eye(3) * self.conf['gnss_gate_sigma_m'] ** 2
             m2 = float(d @ np.linalg.solve(S, d))
@@ -1279,16 +1130,16 @@ class Mapper:
                 else:
                     reason = f'inconsistent with the estimate ({np.linalg.norm(d):.2f} m off)'
         if reason is not None:
-            self.stats['gnss_rejected'] += 1
+            self.st.stats['gnss_rejected'] += 1
             events.append(f'gnss_rejected: {reason}')
             return None
         self._gnss_rejects = 0
-        self.stats['gnss_accepted'] += 1
+        self.st.stats['gnss_accepted'] += 1
         return GnssFix(int(fix.stamp_ns), pos, cov)
 
-    def _attach_gnss(self, kid: int, fix: GnssFix | None, recs: list[_Rec]) -> None:
+    def _attach_gnss(self, kid: int, fix: GnssFix | None, recs: list[FactorRecord]) -> None:
         """Attach this frame's fix (or the pending one, moved by the tracked motion)."""
-        T_wb = self._kf_T_wc[kid] @ self.T_cb
+        T_wb = self.st.kf_T_wc[kid] @ self.T_cb
         if fix is not None:
             pos, cov = fix.position, fix.covariance
         else:
@@ -1296,17 +1147,17 @@ class Mapper:
             self._gnss_pending = None
             if p is None or p.T_wb is None:
                 return
-            if (self._kf_stamps[kid] - p.stamp_ns) * 1e-9 > self.conf['gnss_max_age_s']:
+            if (self.st.kf_stamps[kid] - p.stamp_ns) * 1e-9 > self.conf['gnss_max_age_s']:
                 return
-            ant_then = p.T_wb[:3, :3] @ self._arm_b + p.T_wb[:3, 3]
-            ant_now = T_wb[:3, :3] @ self._arm_b + T_wb[:3, 3]
+            ant_then = p.T_wb[:3, :3] @ self.setup.arm_b + p.T_wb[:3, 3]
+            ant_now = T_wb[:3, :3] @ self.setup.arm_b + T_wb[:3, 3]
             pos = p.position + (ant_now - ant_then)
             moved = float(np.linalg.norm(ant_now - ant_then))
             cov = p.covariance + np.eye(3) * (0.02 + 0.02 * moved) ** 2
         self._gnss_pending = None
         if self._gnss_aligned:
-            f = fac.gnss_factor(X(kid), pos, cov, self._arm_c, 2.0)
-            recs.append(self._rec(f, 'gnss', kid))
+            f = fac.gnss_factor(X(kid), pos, cov, self.setup.arm_c, 2.0)
+            recs.append(self.st.record(f, RecordKind.GNSS, kid))
             self._gnss_kids.add(kid)
         else:
             self._gnss_pairs.append((kid, pos, cov))
@@ -1318,14 +1169,14 @@ class Mapper:
         if len(pairs) < c['gnss_align_min_fixes']:
             return
         dst = np.array([p[1] for p in pairs])
-        T_wb = np.array([self._kf_T_wc[p[0]] for p in pairs]) @ self.T_cb
-        src = np.einsum('kij,j->ki', T_wb[:, :3, :3], self._arm_b) + T_wb[:, :3, 3]
+        T_wb = np.array([self.st.kf_T_wc[p[0]] for p in pairs]) @ self.T_cb
+        src = np.einsum('kij,j->ki', T_wb[:, :3, :3], self.setup.arm_b) + T_wb[:, :3, 3]
         span = np.ptp(src[:, :2], axis=0)
         if float(np.hypot(*span)) < c['gnss_align_min_span_m']:
             return
         keep = np.ones(len(pairs), bool)
         for _ in range(3):
-            s, R, t = align_yaw(src[keep], dst[keep], not self._scale_from_odometry)
+            s, R, t = align_yaw(src[keep], dst[keep], not self.st.scale_from_odometry)
             res = np.linalg.norm(s * src @ R.T + t - dst, axis=1)
             rms = float(np.sqrt(np.mean(res[keep] ** 2)))
             if rms <= c['gnss_align_max_rms_m']:
@@ -1341,18 +1192,19 @@ class Mapper:
         self._apply_similarity(s, R, t)
         self._gnss_aligned = True
         events.append(f'gnss_aligned: rms {rms:.2f} m, scale {s:.3f}')
-        recs = [self._rec(fac.gnss_factor(X(k), pos, cov, self._arm_c, 2.0), 'gnss', k)
-                for (k, pos, cov), ok in zip(pairs, keep) if ok and k in self._kfs]
+        recs = [self.st.record(fac.gnss_factor(X(k), pos, cov, self.setup.arm_c, 2.0),
+                               RecordKind.GNSS, k)
+                for (k, pos, cov), ok in zip(pairs, keep) if ok and k in self.st.kfs]
         self._gnss_kids.update(r.kid for r in recs)
         self._gnss_pairs = []
-        self._metric = True
+        self.st.metric = True
         if not (self._rebuild(recs, gtsam.Values(), {}, weak=False, events=events)
                 or self._rebuild(recs, gtsam.Values(), {}, weak=True, events=events)):
-            self._reset_window(self._last_kid, events)
+            self._reset_window(self.st.last_kid, events)
         self._estimate = self._smoother.calculateEstimate()
-        for kid in self._kfs:
+        for kid in self.st.kfs:
             if self._estimate.exists(X(kid)):
-                self._kf_T_wc[kid] = self._estimate.atPose3(X(kid)).matrix()
+                self.st.kf_T_wc[kid] = self._estimate.atPose3(X(kid)).matrix()
 
     def _apply_similarity(self, s: float, R: np.ndarray, t: np.ndarray) -> None:
         """Move the whole estimate by ``x -> s R x + t`` (map frame change, e.g. to ENU)."""
@@ -1363,27 +1215,27 @@ class Mapper:
             return out
 
         # the camera pose moves with the base: T_wc' = S T_wb T_bc; keep T_bc, scale positions
-        self._kf_T_wc = [move(T @ self.T_cb) @ self.T_bc for T in self._kf_T_wc]
-        self._kf_alt = [float((T @ self.T_cb)[2, 3]) for T in self._kf_T_wc]
+        self.st.kf_T_wc = [move(T @ self.T_cb) @ self.T_bc for T in self.st.kf_T_wc]
+        self.st.kf_alt = [float((T @ self.T_cb)[2, 3]) for T in self.st.kf_T_wc]
         values = gtsam.Values()
-        for kid in self._kfs:
-            values.insert(X(kid), gtsam.Pose3(self._kf_T_wc[kid]))
-        for lid, lm in self._lms.items():
+        for kid in self.st.kfs:
+            values.insert(X(kid), gtsam.Pose3(self.st.kf_T_wc[kid]))
+        for lid, lm in self.st.lms.items():
             xyz = self._estimate.atPoint3(L(lid)) if self._estimate.exists(L(lid)) else lm.xyz
             lm.xyz = s * R @ xyz + t
             values.insert(L(lid), lm.xyz)
         self._estimate = values
-        for tr in self._tracks.values():
+        for tr in self.st.tracks.values():
             if tr.frozen is not None:
                 tr.frozen = s * R @ tr.frozen + t
         self._final_xyz = {k: s * R @ v + t for k, v in self._final_xyz.items()}
-        self._history = [(st, move(T @ self.T_cb) @ self.T_bc) for st, T in self._history]
+        self.st.history = [(st, move(T @ self.T_cb) @ self.T_bc) for st, T in self.st.history]
         self._floors = None
         levels = self.floor_levels()
         self._voxels.transform(s, R, t, lambda p, a, lab: int(levels.assign(
             np.array(self._storey(float(p[2]), a, levels, lab)))))
-        if self._link is not None:
-            self._link['T_wc'] = move(self._link['T_wc'] @ self.T_cb) @ self.T_bc
+        if self.st.link is not None:
+            self.st.link['T_wc'] = move(self.st.link['T_wc'] @ self.T_cb) @ self.T_bc
         p = self._gnss_pending
         if p is not None and p.T_wb is not None:
             p.T_wb = move(p.T_wb)
@@ -1392,13 +1244,6 @@ class Mapper:
     # smoother
     # ------------------------------------------------------------------------------------------
 
-    def _ts(self, kid: int) -> float:
-        """Smoother timestamp of keyframe ``kid``: quantised to ``marginalize_every`` so that
-        old states leave the window in batches (one full re-elimination per batch instead of
-        one per keyframe)."""
-        m = self.conf['marginalize_every']
-        return float(kid // m * m)
-
     def _make_smoother(self) -> gtsam.IncrementalFixedLagSmoother:
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(self.conf['relinearize_threshold'])
@@ -1406,7 +1251,7 @@ class Mapper:
         params.findUnusedFactorSlots = True
         return gtsam.IncrementalFixedLagSmoother(float(self.conf['window_keyframes']), params)
 
-    def _commit(self, recs: list[_Rec], values: gtsam.Values, ts: dict[int, float],
+    def _commit(self, recs: list[FactorRecord], values: gtsam.Values, ts: dict[int, float],
                 lids: list[int], kid: int, events: list[str]) -> None:
         """Send a keyframe's factors to the smoother, then bookkeeping and outlier checks."""
         live = [r for r in self._pending_recs
@@ -1426,7 +1271,7 @@ class Mapper:
             for _ in range(self.conf['extra_iterations']):
                 self._smoother.update()
         except _SOLVER_ERRORS as exc:
-            self.stats['update_failures'] += 1
+            self.st.stats['update_failures'] += 1
             events.append(f'update_failed: {_first_line(exc)}')
             self._recover(recs, values, ts, kid, events)
         else:
@@ -1438,10 +1283,10 @@ class Mapper:
                 self._register(rec)
         self._after_update(kid, lids, events)
 
-    def _register(self, rec: _Rec) -> None:
+    def _register(self, rec: FactorRecord) -> None:
         self._recs[rec.rid] = rec
-        if rec.kid in self._kfs:
-            self._kfs[rec.kid].rids.append(rec.rid)
+        if rec.kid in self.st.kfs:
+            self.st.kfs[rec.kid].rids.append(rec.rid)
 
     def _drop_rec(self, rid: int, removed: bool = False) -> None:
         """Forget a record of the smoother's factors; ``removed``: the factor is rejected (an
@@ -1450,14 +1295,14 @@ class Mapper:
         if rec is not None and removed:
             rec.removed = True
 
-    def _recover(self, recs: list[_Rec], values: gtsam.Values, ts: dict[int, float], kid: int,
-                 events: list[str]) -> None:
+    def _recover(self, recs: list[FactorRecord], values: gtsam.Values, ts: dict[int, float],
+                 kid: int, events: list[str]) -> None:
         """Rebuild the smoother after a failed update: first everything with weak priors, then
         without this keyframe's new landmarks, then the new pose alone; never raises."""
         new_lids = {int(gtsam.Symbol(k).index()) for k in values.keys()
                     if chr(gtsam.Symbol(k).chr()) == 'l'}
         if self._rebuild(recs, values, ts, weak=True, events=events, marginals=True):
-            self.stats['recoveries'] += 1
+            self.st.stats['recoveries'] += 1
             events.append('update_recovered')
             return
         for lid in new_lids:
@@ -1465,14 +1310,15 @@ class Mapper:
         poses = self._only_poses(values)
         pose_ts = {k: v for k, v in ts.items() if poses.exists(k)}
         without = [r for r in recs if r.lid not in new_lids]
-        for attempt in (without, [r for r in without if r.kid == kid and r.kind == 'odom']):
+        odom = [r for r in without if r.kid == kid and r.kind == RecordKind.ODOM]
+        for attempt in (without, odom):
             if self._rebuild(attempt, poses, pose_ts, weak=True, events=events,
                              marginals=True):
                 kept = {r.rid for r in attempt}
                 for r in recs:
                     if r.rid not in kept:
                         r.removed = True
-                self.stats['recoveries'] += 1
+                self.st.stats['recoveries'] += 1
                 events.append('update_recovered')
                 return
         for r in recs:
@@ -1482,34 +1328,35 @@ class Mapper:
     def _reset_window(self, kid: int, events: list[str]) -> None:
         """Last resort: a fresh window holding only keyframe ``kid`` (the map so far is kept)."""
         events.append('window_reset')
-        for lid in list(self._lms):
-            self._finalize_landmark(lid, self._lms[lid].xyz)
-        for k in list(self._kfs):
+        for lid in list(self.st.lms):
+            self._finalize_landmark(lid, self.st.lms[lid].xyz)
+        for k in list(self.st.kfs):
             if k != kid:
-                del self._kfs[k]
+                del self.st.kfs[k]
         self._recs.clear()
         self._pending_remove.clear()
         self._pending_recs = []
-        self._lm_by_ts.clear()
+        self.st.lm_by_ts.clear()
         self._smoother = self._make_smoother()
-        T = self._kf_T_wc[kid]
-        rec = self._rec(fac.pose_prior(X(kid), T, self._prior_cov()), 'anchor', kid)
+        T = self.st.kf_T_wc[kid]
+        prior = fac.pose_prior(X(kid), T, self.setup.prior_cov())
+        rec = self.st.record(prior, RecordKind.ANCHOR, kid)
         g = gtsam.NonlinearFactorGraph()
         g.add(rec.factor)
         v = gtsam.Values()
         v.insert(X(kid), gtsam.Pose3(T))
         try:
-            self._smoother.update(g, v, {X(kid): self._ts(kid)})
+            self._smoother.update(g, v, {X(kid): self.setup.smoother_ts(kid)})
         except _SOLVER_ERRORS as exc:  # nothing left to keep: start over from the next frames
             events.append(f'smoother_reset: {_first_line(exc)}')
             rec.removed = True
-            self._kfs.clear()
+            self.st.kfs.clear()
             self._smoother = self._make_smoother()
             self._estimate = gtsam.Values()
-            self._lose_tracking(self._kf_stamps[kid], None, events)
+            self._lose_tracking(self.st.kf_stamps[kid], None, events)
             return
         rec.index = 0
-        self._kfs[kid].rids = []
+        self.st.kfs[kid].rids = []
         self._register(rec)
         self._estimate = self._smoother.calculateEstimate()
 
@@ -1521,17 +1368,17 @@ class Mapper:
         return out
 
     def _forget_landmark(self, lid: int) -> None:
-        lm = self._lms.pop(lid, None)
+        lm = self.st.lms.pop(lid, None)
         if lm is None:
             return
-        self._lm_by_ts.get(lm.last_kf, set()).discard(lid)
+        self.st.lm_by_ts.get(lm.last_kf, set()).discard(lid)
         for rid in lm.rids:
             self._drop_rec(rid, removed=True)
-        tr = self._tracks.get(lm.track)
+        tr = self.st.tracks.get(lm.track)
         if tr is not None:
             tr.lid = -1
 
-    def _marginal_recs(self, values: gtsam.Values) -> list[_Rec]:
+    def _marginal_recs(self, values: gtsam.Values) -> list[FactorRecord]:
         """The smoother's marginal factors as records for a rebuilt smoother.
 
         A fixed-lag smoother keeps what it knew of the states it marginalised as linear factors
@@ -1542,7 +1389,7 @@ class Mapper:
         """
         lin = self._smoother.getLinearizationPoint()
         graph = self._smoother.getFactors()
-        out: list[_Rec] = []
+        out: list[FactorRecord] = []
         for i in range(graph.size()):
             f = graph.at(i)
             if not isinstance(f, gtsam.LinearContainerFactor):
@@ -1555,13 +1402,15 @@ class Mapper:
                     point.insert(k, lin.atPose3(k))
                 else:
                     point.insert(k, lin.atPoint3(k))
-            out.append(_Rec(self._next_rid, gtsam.LinearContainerFactor(f.factor(), point),
-                            'marginal'))
-            self._next_rid += 1
+            out.append(FactorRecord(self.st.next_rid,
+                                    gtsam.LinearContainerFactor(f.factor(), point),
+                                    RecordKind.MARGINAL))
+            self.st.next_rid += 1
         return out
 
-    def _rebuild(self, new_recs: list[_Rec], new_values: gtsam.Values, new_ts: dict[int, float],
-                 weak: bool, events: list[str], marginals: bool = False) -> bool:
+    def _rebuild(self, new_recs: list[FactorRecord], new_values: gtsam.Values,
+                 new_ts: dict[int, float], weak: bool, events: list[str],
+                 marginals: bool = False) -> bool:
         """A fresh smoother from the window's records and current estimates plus new items.
 
         With ``marginals`` the old smoother's marginal factors (what it kept of the states it
@@ -1573,14 +1422,14 @@ class Mapper:
         c = self.conf
         values = gtsam.Values()
         ts: dict[int, float] = {}
-        for kid in self._kfs:
-            values.insert(X(kid), gtsam.Pose3(self._kf_T_wc[kid]))
-            ts[X(kid)] = self._ts(kid)
-        for lid, lm in self._lms.items():
+        for kid in self.st.kfs:
+            values.insert(X(kid), gtsam.Pose3(self.st.kf_T_wc[kid]))
+            ts[X(kid)] = self.setup.smoother_ts(kid)
+        for lid, lm in self.st.lms.items():
             key = L(lid)
             xyz = self._estimate.atPoint3(key) if self._estimate.exists(key) else lm.xyz
             values.insert(key, xyz)
-            ts[key] = self._ts(lm.last_kf)
+            ts[key] = self.setup.smoother_ts(lm.last_kf)
         for k in new_values.keys():
             if not values.exists(k):
                 if chr(gtsam.Symbol(k).chr()) == 'x':
@@ -1590,39 +1439,40 @@ class Mapper:
         ts.update(new_ts)
         marg = self._marginal_recs(values) if marginals else []
         # the old priors stay when the marginal factors carry over (they are the same graph)
-        replaced = ('anchor', 'prior') if not marg else ()
+        replaced = (RecordKind.ANCHOR, RecordKind.PRIOR) if not marg else ()
         keep = [r for rid, r in self._recs.items()
                 if rid not in self._pending_remove and r.kind not in replaced]
         keep = [r for r in keep if all(values.exists(k) for k in r.factor.keys())] + marg
         new_ok = [r for r in new_recs if all(values.exists(k) for k in r.factor.keys())]
-        extra: list[_Rec] = []
+        extra: list[FactorRecord] = []
         # without them the two oldest window poses stand in for the lost marginal information
         # (two poses also keep the scale of a camera-only map)
-        for n, k in enumerate([] if marg else sorted(self._kfs)[:2]):
+        for n, k in enumerate([] if marg else sorted(self.st.kfs)[:2]):
             if n > 0 and new_values.exists(X(k)):
                 break
-            kind = 'prior' if k == 0 and not self._gnss_aligned else 'anchor'
-            extra.append(self._rec(fac.pose_prior(X(k), self._kf_T_wc[k], self._prior_cov()),
+            kind = RecordKind.PRIOR if k == 0 and not self._gnss_aligned else RecordKind.ANCHOR
+            prior = fac.pose_prior(X(k), self.st.kf_T_wc[k], self.setup.prior_cov())
+            extra.append(self.st.record(prior,
                                    kind, k))
         n_bear: dict[int, int] = {}
         for r in keep + new_ok:
-            if r.kind == 'bearing':
+            if r.kind == RecordKind.BEARING:
                 n_bear[r.lid] = n_bear.get(r.lid, 0) + 1
-        for lid in self._lms:
+        for lid in self.st.lms:
             if n_bear.get(lid, 0) < 2:
-                extra.append(self._rec(fac.point_prior(L(lid), values.atPoint3(L(lid)), 0.2),
-                                       'anchor', lid=lid))
+                extra.append(self.st.record(fac.point_prior(L(lid), values.atPoint3(L(lid)), 0.2),
+                                       RecordKind.ANCHOR, lid=lid))
         if weak:
             sr, sm = c['recovery_sigma_rad'], c['recovery_sigma_m']
             cov = np.diag([sr**2] * 3 + [sm**2] * 3)
             for k in values.keys():
                 sym = gtsam.Symbol(k)
                 if chr(sym.chr()) == 'x':
-                    extra.append(self._rec(fac.pose_prior(k, values.atPose3(k).matrix(), cov),
-                                           'recovery', int(sym.index())))
+                    extra.append(self.st.record(fac.pose_prior(k, values.atPose3(k).matrix(), cov),
+                                           RecordKind.RECOVERY, int(sym.index())))
                 else:
-                    extra.append(self._rec(fac.point_prior(k, values.atPoint3(k), sm),
-                                           'recovery', lid=int(sym.index())))
+                    extra.append(self.st.record(fac.point_prior(k, values.atPoint3(k), sm),
+                                           RecordKind.RECOVERY, lid=int(sym.index())))
         recs = keep + new_ok + extra
         graph = gtsam.NonlinearFactorGraph()
         for r in recs:
@@ -1641,20 +1491,20 @@ class Mapper:
         for rid, r in list(self._recs.items()):
             if rid not in kept:  # outliers and superseded priors are rejected for good
                 self._drop_rec(rid, removed=rid in self._pending_remove
-                               or r.kind in ('anchor', 'prior'))
+                               or r.kind in (RecordKind.ANCHOR, RecordKind.PRIOR))
         self._recs = {}
-        for kf in self._kfs.values():
+        for kf in self.st.kfs.values():
             kf.rids = []
         for r, i in zip(recs, idx):
             r.index = int(i)
             self._register(r)
-            if r.lid in self._lms and r.kind in ('anchor', 'recovery'):
-                self._lms[r.lid].rids.append(r.rid)
+            if r.lid in self.st.lms and r.kind in (RecordKind.ANCHOR, RecordKind.RECOVERY):
+                self.st.lms[r.lid].rids.append(r.rid)
         self._pending_remove.clear()
         for kid in {gtsam.Symbol(k).index() for k in new_values.keys()
                     if chr(gtsam.Symbol(k).chr()) == 'x'}:
-            if kid in self._kfs:
-                self._kfs[kid].rids = [r.rid for r in recs if r.kid == kid]
+            if kid in self.st.kfs:
+                self.st.kfs[kid].rids = [r.rid for r in recs if r.kid == kid]
         return True
 
     def _after_update(self, kid: int, lids: list[int], events: list[str]) -> None:
@@ -1663,26 +1513,26 @@ class Mapper:
         self._estimate = self._smoother.calculateEstimate()
         est = self._estimate
         self._max_ts = max(self._max_ts, kid)
-        for k in list(self._kfs):
+        for k in list(self.st.kfs):
             if est.exists(X(k)):
-                self._kf_T_wc[k] = est.atPose3(X(k)).matrix()
-                self._kf_alt[k] = float((self._kf_T_wc[k] @ self.T_cb)[2, 3])
+                self.st.kf_T_wc[k] = est.atPose3(X(k)).matrix()
+                self.st.kf_alt[k] = float((self.st.kf_T_wc[k] @ self.T_cb)[2, 3])
             else:  # marginalised: its last estimate stays in the trajectory
-                for rid in self._kfs[k].rids:
+                for rid in self.st.kfs[k].rids:
                     self._drop_rec(rid)
-                del self._kfs[k]
+                del self.st.kfs[k]
                 self._learn_odometry(k)
         cutoff = self._max_ts - self.conf['window_keyframes'] + self.conf['marginalize_every']
-        for t in [t for t in self._lm_by_ts if t <= cutoff]:
-            for lid in list(self._lm_by_ts[t]):
+        for t in [t for t in self.st.lm_by_ts if t <= cutoff]:
+            for lid in list(self.st.lm_by_ts[t]):
                 if not est.exists(L(lid)):
-                    lm = self._lms[lid]
+                    lm = self.st.lms[lid]
                     xyz = old.atPoint3(L(lid)) if old.exists(L(lid)) else lm.xyz
                     self._finalize_landmark(lid, xyz)
-            if not self._lm_by_ts.get(t):
-                self._lm_by_ts.pop(t, None)
+            if not self.st.lm_by_ts.get(t):
+                self.st.lm_by_ts.pop(t, None)
         for lid in lids:
-            lm = self._lms.get(lid)
+            lm = self.st.lms.get(lid)
             if lm is not None and est.exists(L(lid)):
                 lm.xyz = est.atPoint3(L(lid))
         self._checks_due = list(lids)  # one commit per frame; the frame's _settle ran before
@@ -1703,17 +1553,17 @@ class Mapper:
             del self._kf_odom_raw[old]
         if self._odom_cal is None or odo is None or not anchored:
             return
-        T0 = self._kf_T_wc[k - 1] @ self.T_cb
-        T1 = self._kf_T_wc[k] @ self.T_cb
+        T0 = self.st.kf_T_wc[k - 1] @ self.T_cb
+        T1 = self.st.kf_T_wc[k] @ self.T_cb
         self._odom_cal.add(odo[0], yaw_of(T0[:3, :3].T @ T1[:3, :3]), odo[2], odo[1],
                            float(np.linalg.norm(T1[:3, 3] - T0[:3, 3])))
 
     def _finalize_landmark(self, lid: int, xyz: np.ndarray) -> None:
-        lm = self._lms.pop(lid)
-        self._lm_by_ts.get(lm.last_kf, set()).discard(lid)
+        lm = self.st.lms.pop(lid)
+        self.st.lm_by_ts.get(lm.last_kf, set()).discard(lid)
         for rid in lm.rids:
             self._drop_rec(rid)
-        tr = self._tracks.get(lm.track)
+        tr = self.st.tracks.get(lm.track)
         if tr is not None and lm.alive:
             tr.frozen = np.array(xyz)
         if self.conf['keep_full_graph']:
@@ -1747,20 +1597,20 @@ class Mapper:
         next update fails as an indeterminate system (long drives: 1-10 window rebuilds each,
         the variable 10-100 km out). Landmarks seen again are caught earlier by the
         chi-square test; these are the ones nothing re-checks."""
-        lids = sorted(lid for lid in self._lms if est.exists(L(lid)))
+        lids = sorted(lid for lid in self.st.lms if est.exists(L(lid)))
         if not lids:
             return
         P = gtsam.utilities.extractPoint3(est)  # every Point3 in key order: the landmarks
         if P.shape[0] != len(lids):
             P = np.array([est.atPoint3(L(lid)) for lid in lids])
-        lms = [self._lms[lid] for lid in lids]
-        centres = np.array([self._kf_T_wc[lm.kf_ids[-1]][:3, 3] for lm in lms])
+        lms = [self.st.lms[lid] for lid in lids]
+        centres = np.array([self.st.kf_T_wc[lm.kf_ids[-1]][:3, 3] for lm in lms])
         far = np.linalg.norm(P - centres, axis=1) > self.conf['lm_lost_depth_m']
         far &= np.array([lm.alive for lm in lms])  # the dead ones are out of the graph already
         for j in np.flatnonzero(far).tolist():
-            lm = self._lms[lids[j]]
+            lm = self.st.lms[lids[j]]
             lm.xyz = P[j]
-            self.stats['landmarks_lost_depth'] += 1
+            self.st.stats['landmarks_lost_depth'] += 1
             self._kill_landmark(lm.lid)
 
     def _check_outliers(self, lids: list[int]) -> None:
@@ -1768,24 +1618,24 @@ class Mapper:
         failing it are removed at the next update, landmarks left with < 2 are killed."""
         recs = []  # the bearing factors of those landmarks (each knows its landmark, keyframe)
         for lid in lids:
-            lm = self._lms.get(lid)
+            lm = self.st.lms.get(lid)
             if lm is None or not lm.alive:
                 continue
             for rid in lm.rids:
                 rec = self._recs.get(rid)
-                if rec is not None and rec.kind == 'bearing':
+                if rec is not None and rec.kind == RecordKind.BEARING:
                     recs.append(rec)
         if not recs:
             return
         # poses and points once per keyframe / landmark, then gathered per observation
         kids, kid_inv = np.unique(np.array([r.kid for r in recs]), return_inverse=True)
-        T = np.array([self._kf_T_wc[k] for k in kids.tolist()])[kid_inv]
+        T = np.array([self.st.kf_T_wc[k] for k in kids.tolist()])[kid_inv]
         uniq, inv = np.unique(np.array([r.lid for r in recs]), return_inverse=True)
-        P = np.array([self._lms[lid].xyz for lid in uniq.tolist()])[inv]
+        P = np.array([self.st.lms[lid].xyz for lid in uniq.tolist()])[inv]
         b = np.array([r.bearing for r in recs])
         px = np.array([r.pixel for r in recs])
         p_c = np.einsum('nji,nj->ni', T[:, :3, :3], P - T[:, :3, 3])
-        bad = angle_between(p_c, b) > self._gate
+        bad = angle_between(p_c, b) > self.setup.gate
         proj, valid = self.camera.project(p_c)
         err_px = np.where(valid, np.linalg.norm(proj - px, axis=1), 1e6)
         n_good = np.bincount(inv, weights=~bad, minlength=len(uniq))
@@ -1793,12 +1643,12 @@ class Mapper:
         n_badv = np.bincount(inv, weights=bad, minlength=len(uniq)).astype(int)
         mean_px = np.where(n_good > 0, sum_px / np.maximum(n_good, 1), np.inf)
         for j, lid in enumerate(uniq.tolist()):
-            self._lms[lid].reproj_px = float(mean_px[j])
+            self.st.lms[lid].reproj_px = float(mean_px[j])
         for j in np.flatnonzero(n_badv).tolist():
             lid = int(uniq[j])
-            lm = self._lms[lid]
+            lm = self.st.lms[lid]
             lm.n_bad += int(n_badv[j])
-            self.stats['outlier_factors'] += int(n_badv[j])
+            self.st.stats['outlier_factors'] += int(n_badv[j])
             if n_good[j] < 2 or lm.n_bad > max(2, lm.n_obs // 2):
                 self._kill_landmark(lid)
                 continue
@@ -1810,16 +1660,16 @@ class Mapper:
     def _kill_landmark(self, lid: int) -> None:
         """Remove an inconsistent landmark's factors; a loose prior keeps its variable
         determined until it is marginalised. Its track never maps again."""
-        lm = self._lms[lid]
+        lm = self.st.lms[lid]
         lm.alive = False
-        self.stats['landmarks_killed'] += 1
+        self.st.stats['landmarks_killed'] += 1
         for rid in lm.rids:
             if rid in self._recs:
                 self._pending_remove.add(rid)
                 self._recs[rid].removed = True
-        rec = self._rec(fac.point_prior(L(lid), lm.xyz, 10.0), 'dead', lid=lid)
+        rec = self.st.record(fac.point_prior(L(lid), lm.xyz, 10.0), RecordKind.DEAD, lid=lid)
         lm.rids.append(rec.rid)
         self._pending_recs.append(rec)
-        tr = self._tracks.get(lm.track)
+        tr = self.st.tracks.get(lm.track)
         if tr is not None:
             tr.rejected = True
