@@ -255,6 +255,9 @@ def test_benchmark_runs_and_labels_random_init(tmp_path: Path) -> None:
     assert res['extract_backend'] == 'onnxruntime'
     assert res['extract_320x256'] > 0 and res['extract_320x256_torch'] > 0
     assert res['sift_1000_320x256'] > 0
+    assert res['extract_640x512'] > 0 and res['xfeat_1000_640x512'] > 0  # same frame, interleaved
+    assert res['extract_over_xfeat_640x512'] == pytest.approx(
+        res['extract_640x512'] / res['xfeat_1000_640x512'])
     assert cli(['--weights', str(tmp_path / 'none.safetensors'), '--repeats', '1']) == 1
 
 

