@@ -76,6 +76,7 @@ def test_sift_verified_matches_land_in_json(tmp_path: Path,
     assert res['n_pairs'] == N_FRAMES - 1
     assert 'USAC_MAGSAC' in res['verification']
     sift = res['methods']['sift_nn']
+    assert sum(sift['verification_pairs'].values()) == N_FRAMES - 1
     names = [p['pair'] for p in sift['per_pair']]
     # Natural order: frame_9 -> frame_10 -> frame_11, never frame_1 -> frame_10.
     assert names == [f'frame_{k}-frame_{k + 1}' for k in range(N_FRAMES - 1)]

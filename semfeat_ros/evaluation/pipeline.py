@@ -9,6 +9,7 @@ truth (real sequences) are scored by counts only: proposed, verified, verified /
 """
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -139,7 +140,8 @@ class _MethodState:
     per_pair: list[dict] = field(default_factory=list)
     figures: list[str] = field(default_factory=list)
     error: str | None = None
-    verifications: set[str] = field(default_factory=set)
+    verifications: Counter[str] = field(default_factory=Counter)
+    """Pairs verified by each kind of verification."""
 
 
 def build_methods(conf: EvalConf) -> tuple[list[Method], dict[str, str]]:
@@ -206,7 +208,7 @@ def evaluate(pairs: Iterable[Pair], conf: EvalConf, out_dir: str | Path, *, mode
             metrics, verification, verified = _score(pair, fa, fb, res, conf, bearing_verifier,
                                                      bearing_verifier_name)
             verifications.add(verification)
-            st.verifications.add(verification)
+            st.verifications[verification] += 1
             metrics.update(pair=pair.name, extract_ms=t_ex, match_ms=t_match)
             st.per_pair.append(metrics)
             if k < conf.n_figures:
@@ -238,6 +240,7 @@ def evaluate(pairs: Iterable[Pair], conf: EvalConf, out_dir: str | Path, *, mode
         results['methods'][name] = {
             'label': st.method.label, 'summary': summarize(st.per_pair),
             'verification': ', '.join(sorted(st.verifications)) or 'none',
+            'verification_pairs': dict(sorted(st.verifications.items())),
             'per_pair': st.per_pair,
             'figures': st.figures}
     seg_figs = []
