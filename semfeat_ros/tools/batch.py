@@ -11,7 +11,8 @@ Each BAG_OR_DIR is a recording (rosbag2 directory, ``.mcap`` or ``.db3`` file) o
 whose entries are recordings. One Ray task runs per recording and step, through the same core
 functions as the single-bag tools, each writing into ``DIR/<recording>/<step>/`` what that tool
 writes into its ``--out``: ``features/`` the bag of ``semfeat-features``, ``map/`` the files of
-``semfeat-map``, ``eval/`` the files of ``semfeat-eval sequence``. A step writes
+``semfeat-map``, ``eval/`` the files of ``semfeat-eval sequence``. The network runs with
+``--cpus-per-task`` threads at feature_node's ``resize_max`` in every step. A step writes
 ``DIR/<recording>/<step>.done.json`` (its results) last; a later run skips the steps whose marker
 matches the options and the recording, and redoes the others. ``DIR/summary.json`` and
 ``DIR/summary.md`` hold one row per recording.
@@ -184,6 +185,9 @@ class StepOutcome:
     wall_s: float = 0.0
     peak_rss_mb: float | None = None
     host: str = ''
+    started: float | None = None
+    """Start and end of the task (s since the epoch, the worker's clock)."""
+    finished: float | None = None
 
 
 @dataclass
@@ -446,12 +450,12 @@ def _run_eval(job: StepJob, out: Path, feature_yaml: Path) -> dict[str, Any]:
     from semfeat_ros.offline.config import read_node_params
 
     c = job.conf
-    default_topic = str(read_node_params(feature_yaml, 'feature_node')['image_topic'])
+    params = read_node_params(feature_yaml, 'feature_node')
     with BagSource(job.recording.bag) as source:
-        image_topic = source.image_topic(c.topic, default_topic)
-    econf = EvalConf(methods=c.eval_methods,
-                     weights=c.weights, progress=False,
-                     network_conf={'num_threads': int(c.cpus_per_task)})
+        image_topic = source.image_topic(c.topic, str(params['image_topic']))
+    econf = EvalConf(methods=c.eval_methods, weights=c.weights, progress=False,
+                     network_conf={'num_threads': int(params['num_threads']),
+                                   'resize_max': int(params['resize_max'])})
     topics = mod.SequenceTopics(image=image_topic)
     sconf = mod.SequenceConf(eval=econf, stride=c.eval_stride, max_pairs=c.eval_max_pairs,
                              topics=topics)
@@ -484,7 +488,7 @@ def run_step(job: StepJob) -> StepOutcome:
 
     import cv2
 
-    t0 = time.perf_counter()
+    t0, started = time.perf_counter(), time.time()
     _reset_peak_rss()
     cv2.setNumThreads(int(job.conf.cpus_per_task))
     name, step, root = job.recording.name, job.step, job.out_root
@@ -506,9 +510,11 @@ def run_step(job: StepJob) -> StepOutcome:
             pass
         return StepOutcome(step, 'failed', error=_short(f'{step}: {one_line(exc)}'),
                            wall_s=round(time.perf_counter() - t0, 3),
-                           peak_rss_mb=_peak_rss_mb(), host=host)
+                           peak_rss_mb=_peak_rss_mb(), host=host, started=started,
+                           finished=time.time())
     outcome = StepOutcome(step, 'ok', result=result, wall_s=round(time.perf_counter() - t0, 3),
-                          peak_rss_mb=_peak_rss_mb(), host=host)
+                          peak_rss_mb=_peak_rss_mb(), host=host, started=started,
+                          finished=time.time())
     _write_json(marker, {
         'recording': name, 'bag': str(job.recording.bag), 'step': step,
         'options': job.conf.step_options(step), 'options_digest': job.options_digest,
@@ -529,32 +535,74 @@ def _utc_now() -> str:
 # ----------------------------------------------------------------------------- Ray
 
 
+#: Signals that end a run: held back while Ray starts or stops (an instance half started or
+#: half stopped would leave its processes behind), raised as an interrupt otherwise.
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+@contextmanager
+def _signals_held() -> Iterator[list[int]]:
+    """Within the block, the stop signals (those not ignored) are recorded instead of acted
+    on; the caller reads the list afterwards. The previous handlers come back at the end."""
+    import threading
+
+    received: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield received
+        return
+
+    def hold(signum: int, frame: FrameType | None) -> None:
+        received.append(signum)
+
+    old = {s: signal.getsignal(s) for s in STOP_SIGNALS}
+    for s, h in old.items():
+        if h is not signal.SIG_IGN:
+            signal.signal(s, hold)
+    try:
+        yield received
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h if h is not None else signal.SIG_DFL)
+
+
+def _start_ray(conf: BatchConfig) -> None:
+    import ray
+
+    try:
+        if conf.address is None:
+            ray.init(address='local', num_cpus=conf.num_cpus, include_dashboard=False,
+                     log_to_driver=False, configure_logging=False,
+                     object_store_memory=LOCAL_OBJECT_STORE, _node_ip_address='127.0.0.1')
+        else:
+            ray.init(address=conf.address, log_to_driver=False, configure_logging=False)
+    except (ConnectionError, RuntimeError, ValueError, OSError) as exc:
+        ray.shutdown()
+        where = 'a local Ray instance' if conf.address is None else f'Ray at {conf.address}'
+        raise BatchRayError(f'cannot start or reach {where}: {_short(str(exc))}') from exc
+
+
 @contextmanager
 def ray_session(conf: BatchConfig) -> Iterator[dict[str, Any]]:
     """Ray for the run: the caller's session when this process already has one, else a local
     instance (started here, stopped on exit) or the cluster at ``conf.address`` (left
-    running). Yields a description of the cluster."""
+    running). Yields a description of the cluster. A stop signal during start-up takes effect
+    once Ray is up (it is then stopped again and :class:`BatchInterrupted` raised)."""
     import ray
 
     own = not ray.is_initialized()
     if own:
-        try:
-            if conf.address is None:
-                ray.init(address='local', num_cpus=conf.num_cpus, include_dashboard=False,
-                         log_to_driver=False, configure_logging=False,
-                         object_store_memory=LOCAL_OBJECT_STORE,
-                         _node_ip_address='127.0.0.1')
-            else:
-                ray.init(address=conf.address, log_to_driver=False, configure_logging=False)
-        except (ConnectionError, RuntimeError, ValueError, OSError) as exc:
-            ray.shutdown()
-            where = 'a local Ray instance' if conf.address is None else f'Ray at {conf.address}'
-            raise BatchRayError(f'cannot start or reach {where}: {_short(str(exc))}') from exc
+        with _signals_held() as received:
+            _start_ray(conf)
+        if received:
+            with _signals_held():
+                ray.shutdown()
+            raise BatchInterrupted(signal.Signals(received[0]).name)
     try:
         yield cluster_description(conf)
     finally:
         if own:
-            ray.shutdown()
+            with _signals_held():
+                ray.shutdown()
 
 
 def cluster_description(conf: BatchConfig) -> dict[str, Any]:
@@ -812,7 +860,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help='map step: the network (semfeat) or an OpenCV front end')
     p.add_argument('--weights', default=None, help='network weights (.safetensors)')
     p.add_argument('--feature-config', type=Path, default=None,
-                   help='feature_node parameter YAML (default: config/feature_node.yaml)')
+                   help='feature_node parameter YAML (default: config/feature_node.yaml); its '
+                   "resize_max is also the eval step's network input size")
     p.add_argument('--topic', default=None, help="camera topic (default: feature_node's "
                    'image_topic or its /compressed)')
     p.add_argument('--max-frames', type=int, default=None,
