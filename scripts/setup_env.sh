@@ -11,6 +11,7 @@ stamp=$venv/.semfeat_stamp
 want=$(cat "$repo/requirements.txt" "$repo/requirements-nodeps.txt" "$repo/setup.py" "$repo/setup.cfg" | sha256sum | cut -c1-16)
 
 if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ] && [ -x "$venv/bin/python" ]; then
+  VENV=$venv "$repo/scripts/build_tf2_msgs.sh"  # tests only: /tf over DDS (no wheel)
   echo "$venv/bin"
   exit 0
 fi
@@ -31,4 +32,5 @@ echo "setting up $venv (first run takes a minute or two) ..." >&2
 # The venv holds package.xml files of the ROS wheels: keep colcon from crawling into it.
 touch "$venv/COLCON_IGNORE"
 echo "$want" > "$stamp"
+VENV=$venv "$repo/scripts/build_tf2_msgs.sh"  # tests only: /tf over DDS (no wheel)
 echo "$venv/bin"

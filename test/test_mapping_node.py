@@ -15,6 +15,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, PointCloud2
 from std_srvs.srv import Trigger
+from tf2_msgs.msg import TFMessage
 
 from msg_adapters import (
     model_to_camera_info,
@@ -28,6 +29,7 @@ from semfeat_ros.camera import FisheyeCamera, load_camera_yaml
 from semfeat_ros.labels import load_labels
 from semfeat_ros.mapping import align_umeyama, read_tum
 from semfeat_ros.mapping.synthetic import DriveConfig, garage_drive
+from semfeat_ros.nodes.tf import TF_QOS, TF_STATIC_SUB_QOS, transform_msg, transform_to_matrix
 
 CAM = FisheyeCamera(640, 512, 186.7, 186.7, 320.0, 256.0, k=(0.02, -0.004, 0.0005, -0.0001),
                     fov_deg=190)
@@ -116,6 +118,10 @@ def test_mapping_node_on_synthetic_garage(isolated_ros, tmp_path: Path) -> None:
                 'probe_mapping')
     poses: list[Odometry] = []
     h.probe.create_subscription(Odometry, '/semfeat/odometry', poses.append, 500)
+    tf: list[TFMessage] = []
+    tf_static: list[TFMessage] = []
+    h.probe.create_subscription(TFMessage, '/tf', tf.append, TF_QOS)
+    h.probe.create_subscription(TFMessage, '/tf_static', tf_static.append, TF_STATIC_SUB_QOS)
     node, probe, wait = h.node, h.probe, h.wait
     try:
         h.start()
@@ -140,6 +146,29 @@ def test_mapping_node_on_synthetic_garage(isolated_ros, tmp_path: Path) -> None:
         err = np.linalg.norm(sim.apply(E) - G, axis=1)
         assert np.sqrt(np.mean(err**2)) < 0.3, f'ATE {np.sqrt(np.mean(err**2)):.3f} m'
         assert abs(sim.s - 1.0) < 0.05  # metric from wheel odometry
+
+        # TF: map -> odom -> base_link at each pose's image stamp; the chain is the pose, and
+        # odom -> base_link the wheel odometry sent at that stamp; base_link -> camera static
+        assert wait(lambda: len(tf) >= len(poses))
+        chains = {}
+        for m in tf:
+            (a, b) = m.transforms
+            assert (a.header.frame_id, a.child_frame_id) == ('map', 'odom')
+            assert (b.header.frame_id, b.child_frame_id) == ('odom', 'base_link')
+            assert a.header.stamp == b.header.stamp
+            stamp = a.header.stamp.sec * 10**9 + a.header.stamp.nanosec
+            chains[stamp] = (transform_to_matrix(a), transform_to_matrix(b))
+        assert set(chains) == set(est)
+        for stamp, (T_map_odom, T_odom_base) in chains.items():
+            np.testing.assert_allclose(T_map_odom @ T_odom_base, est[stamp], atol=1e-6)
+            np.testing.assert_allclose(T_odom_base, planar(gt[stamp]), atol=1e-6)
+        assert wait(lambda: len(tf_static) >= 1)
+        (static,) = tf_static[-1].transforms
+        assert (static.header.frame_id, static.child_frame_id) == ('base_link',
+                                                                   'camera_front_optical')
+        np.testing.assert_allclose(transform_to_matrix(static), load_camera_yaml()[1].T_base_cam,
+                                   atol=1e-9)
+        assert node.extrinsic_source == 'camera_config'
 
         # A late subscriber still gets the latched map.
         clouds: list[PointCloud2] = []
@@ -336,5 +365,48 @@ def test_lone_outliers_never_reset_the_map_and_a_persisting_change_does(
         assert values['resets_camera'] == '1' and values['resets_time'] == '1'
         assert values['change_outliers_ignored'] == '3'
         assert node.health.counters.rejected == 3
+    finally:
+        h.close()
+
+
+@pytest.mark.ros_domain(86)
+def test_extrinsic_from_tf_static_and_tf_without_odometry(isolated_ros) -> None:
+    """A URDF's base_link -> mount -> camera chain on /tf_static replaces camera_config (and
+    the node then publishes no static transform of its own); without wheel odometry /tf
+    carries map -> base_link."""
+    T_mount = np.eye(4)
+    T_mount[:3, 3] = (2.0, 0.1, 1.2)
+    T_cam = np.array([[0, 0, 1, 0.05], [-1, 0, 0, 0], [0, -1, 0, 0], [0, 0, 0, 1]], float)
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    h = Harness([Parameter('use_gnss', value=False), Parameter('use_odometry', value=False)],
+                'probe_tf_static')
+    pub = h.probe.create_publisher(TFMessage, '/tf_static', latched)  # the URDF's publisher
+    pub.publish(TFMessage(transforms=[
+        transform_msg(T_mount, 'base_link', 'camera_mount', 0),
+        transform_msg(T_cam, 'camera_mount', 'camera_front_optical', 0)]))
+    tf: list[TFMessage] = []
+    h.probe.create_subscription(TFMessage, '/tf', tf.append, TF_QOS)
+    node = h.node
+    try:
+        assert h.wait(lambda: node.static_frames.lookup('base_link', 'camera_front_optical')
+                      is not None, 20)
+        assert h.wait(lambda: h.pub_tracks.get_subscription_count() > 0
+                      and h.pub_info.get_subscription_count() > 0)
+        h.pub_info.publish(model_to_camera_info(
+            CAM, stamp_ns=0, frame_id='camera_front_optical', msg_cls=CameraInfo))
+        assert h.wait(lambda: node.feeder is not None)
+        assert node.extrinsic_source == 'tf_static'
+        np.testing.assert_allclose(node.T_base_cam, T_mount @ T_cam, atol=1e-9)
+        assert node._own_static == {}  # camera_config was not broadcast
+        h.settle_tracks_topic()
+        for f in drive_frames(8):
+            h.send_tracks(f)
+            time.sleep(0.02)
+        assert h.wait(lambda: node.health.counters.processed >= 8)
+        assert h.wait(lambda: len(tf) >= 1)
+        for m in tf:
+            (t,) = m.transforms
+            assert (t.header.frame_id, t.child_frame_id) == ('map', 'base_link')
     finally:
         h.close()

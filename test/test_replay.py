@@ -88,6 +88,39 @@ def test_clean_replay_diagnostics(live: dict) -> None:
     assert int(diag['matcher_node']['frames_processed']) >= processed - 2
 
 
+def test_tf_chain_map_odom_base_camera(live: dict) -> None:
+    """/tf and /tf_static over DDS: map -> odom -> base_link at the image stamps of the mapped
+    frames, composing to /semfeat/odometry's pose, and base_link -> camera_front_optical (the
+    CameraInfo's frame) from camera_config, latched."""
+    from semfeat_ros.camera import load_camera_yaml
+    from semfeat_ros.nodes.tf import transform_to_matrix
+
+    tf, static = {}, []
+    with BagSource(live['out'] / 'output_bag') as src:
+        for m in src.messages(['/tf', '/tf_static']):
+            if m.topic == '/tf_static':
+                static.append(m.msg)
+                continue
+            assert [(t.header.frame_id, t.child_frame_id) for t in m.msg.transforms] == [
+                ('map', 'odom'), ('odom', 'base_link')]
+            a, b = m.msg.transforms
+            assert a.header.stamp == b.header.stamp
+            tf[a.header.stamp.sec * 10**9 + a.header.stamp.nanosec] = (
+                transform_to_matrix(a) @ transform_to_matrix(b))
+    assert len(static) == 1
+    (cam,) = static[0].transforms
+    assert (cam.header.frame_id, cam.child_frame_id) == ('base_link', 'camera_front_optical')
+    T_base_cam = transform_to_matrix(cam)
+    np.testing.assert_allclose(T_base_cam, load_camera_yaml()[1].T_base_cam, atol=1e-9)
+    o = live['outputs']
+    poses = dict(zip(o['stamps'].tolist(), o['poses']))
+    assert set(tf) <= set(_track_stamps(live['out'] / 'output_bag').tolist())  # image stamps
+    assert len(tf) >= 0.9 * len(poses) and set(tf) <= set(poses)
+    for stamp, T_map_base in tf.items():
+        np.testing.assert_allclose(T_map_base, poses[stamp], atol=1e-5)
+        assert np.isfinite(T_map_base @ T_base_cam).all()  # map -> camera resolves
+
+
 def test_odometry_against_ground_truth(live: dict) -> None:
     gt = _ground_truth(BAG)
     o = live['outputs']

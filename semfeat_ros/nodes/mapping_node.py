@@ -3,7 +3,13 @@
 Feeds ``/semfeat/tracks`` into the incremental factor-graph mapper (GTSAM fixed-lag iSAM2 with
 bearing factors) together with the optional ``/vehicle/odom`` and ``/gnss/fix``; publishes
 ``/semfeat/odometry`` (map -> base_link, z = altitude) and ``/semfeat/path`` every frame and the
-labeled map ``/semantic_cloud`` (latched, transient_local depth 1) at a bounded rate. The service
+labeled map ``/semantic_cloud`` (latched, transient_local depth 1) at a bounded rate.
+
+TF (REP-105): every mapped frame broadcasts, stamped with its image time, map -> odom and
+odom -> base_link (the wheel odometry interpolated at that stamp) once wheel odometry is
+received, map -> base_link before. The base_link -> camera extrinsic of a new map comes from
+/tf_static when another publisher (a vehicle's URDF, possibly through intermediate frames)
+carries it, else from ``camera_config``, which is then broadcast on /tf_static. The service
 ``~/save_map`` (std_srvs/Trigger) writes ``cloud.ply`` (x y z rgb label floor landmark_id n_obs),
 ``trajectory.tum`` and their manifest ``map.json`` as one unit into ``output_dir``
 (:func:`~semfeat_ros.mapping.io.save_map`: temporary files renamed into place, symlinks
@@ -43,6 +49,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, NavSatFix, PointCloud2
 from std_srvs.srv import Trigger
+from tf2_msgs.msg import TFMessage
 
 from msg_adapters import (
     camera_info_to_model,
@@ -61,6 +68,14 @@ from semfeat_ros.mapping.session import FedFrame, FrameFeeder, MappingSession, S
 from semfeat_ros.mapping.types import Tracks
 from semfeat_ros.nodes.diagnostics import NodeHealth, spin_node
 from semfeat_ros.nodes.params import declare_config, guard_updates, param
+from semfeat_ros.nodes.tf import (
+    TF_QOS,
+    TF_STATIC_PUB_QOS,
+    TF_STATIC_SUB_QOS,
+    StaticFrames,
+    transform_msg,
+    transform_to_matrix,
+)
 from semfeat_ros.runtime import ChangeGate, RateLimit, StampGuard
 
 
@@ -81,9 +96,19 @@ class MappingNodeConfig:
                                 read_only=True)
     path_topic: str = param('/semfeat/path', 'Keyframe trajectory', read_only=True)
     map_frame: str = param('map', 'Frame of the map (z up)', read_only=True)
+    odom_frame: str = param('odom', 'Frame of the wheel odometry (REP-105)', read_only=True)
     base_frame: str = param('base_link', 'Vehicle frame', read_only=True)
-    camera_config: str = param('', 'Calibration YAML with the base_link -> camera extrinsic; '
-                               'empty = the shipped config/camera_front.yaml', read_only=True)
+    camera_frame: str = param('', 'Optical frame of the camera on /tf_static; empty = the '
+                              "CameraInfo's frame_id", read_only=True)
+    publish_tf: bool = param(True, 'Broadcast map -> odom -> base_link on /tf at each mapped '
+                             "frame's image stamp (map -> base_link before any wheel odometry) "
+                             'and base_link -> camera on /tf_static', read_only=True)
+    publish_odom_tf: bool = param(True, 'Broadcast odom -> base_link from the wheel odometry '
+                                  '(off where the odometry driver broadcasts it)',
+                                  read_only=True)
+    camera_config: str = param('', 'Calibration YAML with the base_link -> camera extrinsic, '
+                               'used when /tf_static does not carry it (a URDF); empty = the '
+                               'shipped config/camera_front.yaml', read_only=True)
     fov_deg: float = param(190.0, 'Field of view of the lens (deg, full cone)',
                            range=(60.0, 240.0), read_only=True)
     use_odometry: bool = param(True, 'Use wheel odometry when it is published', read_only=True)
@@ -159,7 +184,15 @@ class MappingNode(Node):
         guard_updates(self, MappingNodeConfig)
         self.health = NodeHealth(self)
         _, extrinsic = load_camera_yaml(c.camera_config or None)
-        self.T_base_cam = extrinsic.T_base_cam
+        self.T_base_cam_config = extrinsic.T_base_cam
+        self.T_base_cam = self.T_base_cam_config  # of the current session
+        self.extrinsic_source = 'camera_config'
+        self.static_frames = StaticFrames()  # what others publish on /tf_static (a URDF)
+        self._own_static: dict[tuple[str, str], np.ndarray] = {}  # what this node published
+        self._odom_seen = False  # wheel odometry received: TF is map -> odom -> base_link
+        self.health.extra.update(extrinsic_source=self.extrinsic_source, tf_published='0',
+                                 tf_skipped_no_odometry='0')
+        self._tf_counts = {'published': 0, 'skipped': 0}
         self.out_dir = Path(c.output_dir).expanduser().resolve() if c.output_dir else None
         self.session: MappingSession | None = None
         self.feeder: FrameFeeder | None = None
@@ -193,6 +226,12 @@ class MappingNode(Node):
         self.pub_cloud = self.create_publisher(PointCloud2, c.cloud_topic, latched)
         self.pub_odom = self.create_publisher(Odometry, c.odometry_topic, 10)
         self.pub_path = self.create_publisher(PathMsg, c.path_topic, latched)
+        if c.publish_tf:
+            self.pub_tf = self.create_publisher(TFMessage, '/tf', TF_QOS)
+            self.pub_tf_static = self.create_publisher(TFMessage, '/tf_static',
+                                                       TF_STATIC_PUB_QOS)
+        self.create_subscription(TFMessage, '/tf_static', self._on_tf_static,
+                                 TF_STATIC_SUB_QOS)
         self.create_service(Trigger, '~/save_map', self._on_save_map)
         self.create_timer(c.cloud_period_s, self._publish_cloud)
         self.create_timer(c.diagnostics_period_s, self._publish_diagnostics)
@@ -229,6 +268,7 @@ class MappingNode(Node):
         except MessageError as exc:
             self.health.on_reject(f'odometry: {exc}')
             return
+        self._odom_seen = True
         order = self._odom_stamps.check(sample.stamp_ns, sample)
         self._count_outliers('odometry with older stamps', self._odom_stamps.dropped)
         if order == 'ok':
@@ -254,6 +294,24 @@ class MappingNode(Node):
             self.health.on_reject(f'tracks: {exc}')
             return
         self._queue('tracks', tr)
+
+    def _on_tf_static(self, msg: TFMessage) -> None:
+        """Static transforms of other publishers (a vehicle's URDF); this node's own, received
+        back, are skipped."""
+        for t in msg.transforms:
+            try:
+                T = transform_to_matrix(t)
+            except MessageError as exc:
+                self.health.on_reject(f'tf_static: {exc}')
+                continue
+            key = (t.header.frame_id, t.child_frame_id)
+            own = self._own_static.get(key)
+            if own is not None and np.allclose(own, T, atol=1e-6):
+                continue
+            if self.static_frames.add(*key, T) and own is not None:
+                self.get_logger().warning(
+                    f'/tf_static carries {key[0]} -> {key[1]} unlike camera_config: the map '
+                    'uses it from the next camera change or reset')
 
     def _queue(self, kind: str, item: Any) -> None:
         self._inbox.append((kind, item))
@@ -304,11 +362,31 @@ class MappingNode(Node):
         if self.session is not None:
             self._before_reset('camera', f'camera changed ({camera.width}x{camera.height} px, '
                                f'frame {frame_id!r})')
+        self._camera_frame = self.conf.camera_frame or frame_id or 'camera'
+        self._choose_extrinsic()
         self.session = MappingSession(camera, self.T_base_cam, mapper_conf(self.conf),
                                       session_conf(self.conf))
         self.feeder = FrameFeeder(self.session, self.conf.odom_wait_s)
         self.stamps.reset()
         self._now_ns = 0
+
+    def _choose_extrinsic(self) -> None:
+        """base_link -> camera for a new session: from /tf_static when another publisher
+        (a URDF) carries it, else camera_config, which is then broadcast on /tf_static (call
+        with the lock held)."""
+        base, cam = self.conf.base_frame, self._camera_frame
+        T = self.static_frames.lookup(base, cam)
+        source = 'tf_static' if T is not None else 'camera_config'
+        if T is None:
+            T = self.T_base_cam_config
+            if self.conf.publish_tf and (base, cam) not in self._own_static:
+                self._own_static[(base, cam)] = T
+                self.pub_tf_static.publish(TFMessage(transforms=[
+                    transform_msg(T_, *key, 0) for key, T_ in self._own_static.items()]))
+        if source != self.extrinsic_source or T is not self.T_base_cam:
+            self.get_logger().info(f'{base} -> {cam} from {source}')
+        self.T_base_cam, self.extrinsic_source = T, source
+        self.health.extra['extrinsic_source'] = source
 
     def _before_reset(self, kind: str, reason: str) -> None:
         """Count a reset and save the map it ends into ``<output_dir>/before_reset`` (call
@@ -347,30 +425,32 @@ class MappingNode(Node):
                                     t.labels))
             self._now_ns = max(self._now_ns, t.stamp_ns)
 
-    def _release(self, now_ns: int | None
-                 ) -> tuple[list[tuple[FedFrame, tuple | None]], dict[str, Any]]:
-        """Frames the feeder maps now, each with the keyframe path after it, and the session's
-        state after the last of them (call with the lock held)."""
+    def _release(self, now_ns: int | None) -> tuple[list[tuple], dict[str, Any]]:
+        """Frames the feeder maps now, each with the keyframe path after it and the wheel
+        odometry pose at its stamp (None without), and the session's state after the last of
+        them (call with the lock held)."""
         out = []
         for f in self.feeder.release(now_ns):
-            path = None
+            path = T_odom_base = None
             if f.result is not None:
                 self.last_result = f.result
                 self._dirty = self._dirty or f.result.keyframe
                 if f.result.keyframe:
                     path = self.session.mapper.trajectory()
-            out.append((f, path))
+                T_odom_base = self.session.odometry_at(f.tracks.stamp_ns)
+            out.append((f, path, T_odom_base))
         state = {'calibration': self.session.mapper.odometry_calibration,
                  'missing': dict(self.session.odometry_missing)} if out else {}
         return out, state
 
-    def _publish_frames(self, fed: list[tuple[FedFrame, tuple | None]],
-                        state: dict[str, Any]) -> None:
-        for f, path in fed:
+    def _publish_frames(self, fed: list[tuple], state: dict[str, Any]) -> None:
+        for f, path, T_odom_base in fed:
             if f.result is None:
                 self.health.on_reject(f'mapper: {f.error}')
             else:
                 self._publish_frame(f, path)
+                if self.conf.publish_tf and f.result.T_map_base is not None:
+                    self._broadcast(f.result.T_map_base, T_odom_base, f.tracks.stamp_ns)
         if state:
             cal, missing = state['calibration'], state['missing']
             self.health.extra.update(
@@ -397,6 +477,27 @@ class MappingNode(Node):
         self.health.extra.update(state=result.state, metric=str(result.metric),
                                  landmarks=str(result.n_landmarks),
                                  update_ms=f'{result.update_ms:.1f}')
+
+    def _broadcast(self, T_map_base: np.ndarray, T_odom_base: np.ndarray | None,
+                   stamp_ns: int) -> None:
+        """/tf at the frame's image stamp: map -> odom (and odom -> base_link) once wheel
+        odometry is received, map -> base_link before; a frame without odometry at its stamp
+        after that is skipped and counted (base_link keeps one parent)."""
+        c = self.conf
+        if T_odom_base is not None:
+            tfs = [transform_msg(T_map_base @ np.linalg.inv(T_odom_base), c.map_frame,
+                                 c.odom_frame, stamp_ns)]
+            if c.publish_odom_tf:
+                tfs.append(transform_msg(T_odom_base, c.odom_frame, c.base_frame, stamp_ns))
+        elif not self._odom_seen:
+            tfs = [transform_msg(T_map_base, c.map_frame, c.base_frame, stamp_ns)]
+        else:
+            self._tf_counts['skipped'] += 1
+            self.health.extra['tf_skipped_no_odometry'] = str(self._tf_counts['skipped'])
+            return
+        self.pub_tf.publish(TFMessage(transforms=tfs))
+        self._tf_counts['published'] += 1
+        self.health.extra['tf_published'] = str(self._tf_counts['published'])
 
     # -- outputs ----------------------------------------------------------------------------
     def _publish_cloud(self) -> None:

@@ -26,7 +26,7 @@ from semfeat_ros.tools.launcher import NODES, Pipeline, PipelineConfig, wait_for
 REPO = Path(__file__).resolve().parents[2]
 DEFAULT_BAG = REPO / 'bags' / 'garage_ramp_seed0'
 RECORDED_TOPICS = ('/semfeat/tracks', '/semfeat/odometry', '/semfeat/path', '/semantic_cloud',
-                   '/diagnostics')
+                   '/diagnostics', '/tf', '/tf_static')
 
 
 class DemoError(RuntimeError):
