@@ -134,9 +134,13 @@ class FailingSmoother:
 
 @pytest.fixture(scope='module')
 def with_failures() -> Run:
-    mapper = SingleObservationLandmark(CAMERA, T_BASE_CAM)
-    # the forced error comes first: a recovery replaces the smoother (and this wrapper)
-    mapper._smoother = FailingSmoother(mapper._smoother, fail_at=6)
+    made = []
+
+    def first_fails(smoother: object) -> object:  # a recovery replaces the wrapped smoother
+        made.append(smoother)
+        return FailingSmoother(smoother, fail_at=6) if len(made) == 1 else smoother
+
+    mapper = SingleObservationLandmark(CAMERA, T_BASE_CAM, wrap_smoother=first_fails)
     conf = DriveConfig(seed=3, outlier_fraction=0.02, bursts={70: 0.4, 71: 0.4, 72: 0.4},
                        drop_frames=frozenset(range(120, 126)))
     return drive_through(conf, mapper)
@@ -146,8 +150,6 @@ def with_failures() -> Run:
 def test_every_rebuild_failing_resets_the_window_and_recovers(n_fail: int) -> None:
     """4 failures: the update and its 3 rebuilds fail, the window is reset; 5: the reset fails
     too, the smoother starts over and the mapper re-initialises. Never a crash."""
-    mapper = Mapper(CAMERA, T_BASE_CAM, SYNTHETIC)
-    make = mapper._make_smoother
     calls = {'n': 0}
 
     class Flaky(FailingSmoother):  # updates 10..10+n_fail-1 fail on whatever smoother
@@ -158,8 +160,8 @@ def test_every_rebuild_failing_resets_the_window_and_recovers(n_fail: int) -> No
                     raise RuntimeError('\nIndeterminant linear system detected')
             return self.smoother.update(*args)
 
-    mapper._make_smoother = lambda: Flaky(make(), fail_at=-1)
-    mapper._smoother = mapper._make_smoother()
+    mapper = Mapper(CAMERA, T_BASE_CAM, SYNTHETIC,
+                    wrap_smoother=lambda smoother: Flaky(smoother, fail_at=-1))
     run = drive_through(DriveConfig(seed=6), mapper)
     events = run.events()
     assert 'window_reset' in events
@@ -412,7 +414,7 @@ class RotationAtTheKeyframe(Mapper):
 
     def _queue_rotation(self, frame, mappable, ka, kb, recs):  # noqa: ANN001, ANN202
         super()._queue_rotation(frame, mappable, ka, kb, recs)
-        self._run_rotation_job(recs)
+        self._run_rotation_job(recs.append)
 
 
 def test_keyframe_rotations_from_far_tracks_bound_heading_drift() -> None:
@@ -648,7 +650,7 @@ def test_landmark_receding_along_its_rays_is_killed_before_the_solver_fails() ->
     # killed by the next check; the others stay, and the next updates succeed
     run = drive_through(DriveConfig(seed=2, odometry=True))
     mapper = run.mapper
-    est = gtsam.Values(mapper._estimate)
+    est = gtsam.Values(mapper.backend.estimate)
     live = [lid for lid, lm in mapper.st.lms.items() if lm.alive and est.exists(L(lid))]
     lid = live[0]
     lm = mapper.st.lms[lid]
@@ -678,12 +680,14 @@ def test_rebuild_keeps_what_the_smoother_marginalised() -> None:
         # GNSS ended 100 frames ago: only the marginal factors still carry its heading
         assert mapper.gnss_aligned and not mapper._gnss_kids & set(mapper.st.kfs)
         k0 = X(min(mapper.st.kfs))
-        ref = np.sqrt(np.diag(np.asarray(mapper._smoother.marginalCovariance(k0))))
-        before = mapper._smoother.calculateEstimate().atPose3(k0).matrix()
-        assert mapper._rebuild([], gtsam.Values(), {}, weak=False, events=[],
+        backend = mapper.backend
+        ref = np.sqrt(np.diag(backend.marginal_covariance(k0)))
+        before = backend.estimate.atPose3(k0).matrix()
+        assert backend.rebuild([], gtsam.Values(), {}, weak=False, events=[],
                                marginals=marginals)
-        sig[marginals] = np.sqrt(np.diag(np.asarray(mapper._smoother.marginalCovariance(k0))))
-        after = mapper._smoother.calculateEstimate().atPose3(k0).matrix()
+        sig[marginals] = np.sqrt(np.diag(backend.marginal_covariance(k0)))
+        backend.refresh()
+        after = backend.estimate.atPose3(k0).matrix()
         assert np.linalg.norm(after[:3, 3] - before[:3, 3]) < 0.03
     assert np.allclose(sig[True], ref, rtol=0.35), (sig[True], ref)
     # the stand-in prior pins the position to 1 cm and loosens roll and pitch (measured: 0.37-0.41

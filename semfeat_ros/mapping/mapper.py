@@ -19,6 +19,7 @@ camera optical frame in ``map`` so that bearings need no extrinsic inside the fa
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 import time
 from typing import Any
 
@@ -29,6 +30,7 @@ import numpy as np
 from semfeat_ros.camera import CameraModel
 from semfeat_ros.labels import LabelSet
 from semfeat_ros.mapping import factors as fac
+from semfeat_ros.mapping.backend import Backend, Smoother
 from semfeat_ros.mapping.cloud import SemanticCloud, VoxelMap
 from semfeat_ros.mapping.errors import MapperConfigError, StampOrderError
 from semfeat_ros.mapping.floors import FloorLevels, detect_floors, storey_altitude
@@ -71,18 +73,6 @@ from semfeat_ros.matching.geometry import (
 STATES = ('initializing', 'tracking', 'odometry_only', 'lost')
 _STILL_M = 1e-3  # an odometry delta shorter than this (m) is a stop
 _GNSS_ANCHOR_KF = 3  # a keyframe pair counts as GNSS-anchored with fixes this close (keyframes)
-# What gtsam raises from a failed update: IndeterminantLinearSystem and cheirality/other C++
-# exceptions arrive as RuntimeError, std::out_of_range as IndexError, invalid_argument as
-# ValueError.
-_SOLVER_ERRORS = (RuntimeError, IndexError, ValueError)
-
-
-def _first_line(exc: BaseException) -> str:
-    """First non-empty line of an exception message (gtsam's start with a newline)."""
-    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
-    return (lines[0] if lines else type(exc).__name__)[:100]
-
-
 class Mapper:
     """Incremental fixed-lag factor-graph mapper.
 
@@ -92,7 +82,9 @@ class Mapper:
     """
 
     def __init__(self, camera: CameraModel, T_base_cam: np.ndarray,
-                 conf: dict[str, Any] | None = None, labels: LabelSet | None = None) -> None:
+                 conf: dict[str, Any] | None = None, labels: LabelSet | None = None, *,
+                 wrap_smoother: Callable[[Smoother], Smoother] | None = None) -> None:
+        self._wrap_smoother = wrap_smoother
         self.setup = MapperSetup(camera, T_base_cam, conf, labels)
         self.conf = self.setup.conf
         self.camera = camera
@@ -106,18 +98,13 @@ class Mapper:
         """Forget everything (map, trajectory, smoother); the next frame starts a new map."""
         self.st = MapState(self.setup)
         self._last_stamp: int | None = None
-        self._recs: dict[int, FactorRecord] = {}
-        self._pending_remove: set[int] = set()
-        self._pending_recs: list[FactorRecord] = []
         # the last keyframe's deferred work (see _settle): the keyframe pair whose rotation is
         # verified (ka, kb, bearings a, b) and the landmarks whose factors are checked
         self._rot_job: tuple[int, int, np.ndarray, np.ndarray] | None = None
         self._checks_due: list[int] | None = None
         self._voxels = VoxelMap(self.conf['voxel_size_m'], self.conf['max_map_points'])
-        self._final_xyz: dict[int, np.ndarray] = {}
-        self._smoother = self._make_smoother()
-        self._estimate = gtsam.Values()
-        self._max_ts = -1
+        self.backend = Backend(self.setup, self.st, self._finalize_landmark,
+                               self._lose_tracking, self._wrap_smoother)
         # tracking
         self._kf_odom = OdomChain(False)
         self._ref: dict[str, Any] | None = None
@@ -126,7 +113,6 @@ class Mapper:
         # gnss
         self._gnss_pending: PendingFix | None = None
         self._gnss_pairs: list[tuple[int, np.ndarray, np.ndarray]] = []
-        self._gnss_aligned = False
         self._gnss_rejects = 0
         self._gnss_kids: set[int] = set()  # keyframes with a GNSS factor, not yet marginalised
         # odometry calibration; per keyframe the raw (heading change, distance, time in
@@ -168,7 +154,7 @@ class Mapper:
     @property
     def gnss_aligned(self) -> bool:
         """True once the map frame has been aligned to the GNSS (ENU) frame."""
-        return self._gnss_aligned
+        return self.st.gnss_aligned
 
     def update(self, tracks: Tracks, odometry: OdometryDelta | None = None,
                gnss: GnssFix | None = None) -> MapperResult:
@@ -220,10 +206,7 @@ class Mapper:
             if T_wc is None and self.st.state == 'lost':
                 T_wc = self._predict(frame.stamp_ns, odometry)
             elif keyframe:  # just initialised: the smoother's marginal of the new pose
-                try:
-                    cov_c = np.asarray(self._smoother.marginalCovariance(X(self.st.last_kid)))
-                except _SOLVER_ERRORS:
-                    cov_c = None
+                cov_c = self.backend.marginal_covariance(X(self.st.last_kid))
         else:
             T_wc, cov_c, n_inl, keyframe = self._track(frame, mappable, odometry, fix, events)
         self._prune_tracks(frame)
@@ -271,7 +254,8 @@ class Mapper:
         for lm in self.st.lms.values():
             if self._publishable(lm):
                 key = L(lm.lid)
-                xyz = self._estimate.atPoint3(key) if self._estimate.exists(key) else lm.xyz
+                est = self.backend.estimate
+                xyz = est.atPoint3(key) if est.exists(key) else lm.xyz
                 rows.append((xyz, lm.label, lm.lid, lm.n_obs, self._seen_alt(lm, levels)))
         if rows:
             xyz_w = np.array([r[0] for r in rows])
@@ -314,7 +298,7 @@ class Mapper:
     def window(self) -> dict[str, int]:
         """Size of the smoother's window: keyframes, landmarks, factors; and the voxel map."""
         return dict(keyframes=len(self.st.kfs), landmarks=len(self.st.lms),
-                    factors=len(self._recs),
+                    factors=len(self.backend.records),
                     map_points=len(self._voxels))
 
     def landmark_positions(self) -> dict[int, np.ndarray]:
@@ -322,56 +306,9 @@ class Mapper:
         self._settle()
         out = {}
         for lid, lm in self.st.lms.items():
-            if lm.alive and self._estimate.exists(L(lid)):
-                out[lid] = self._estimate.atPoint3(L(lid))
+            if lm.alive and self.backend.estimate.exists(L(lid)):
+                out[lid] = self.backend.estimate.atPoint3(L(lid))
         return out
-
-    def batch_optimize(self, max_iterations: int = 100
-                       ) -> tuple[np.ndarray, dict[int, np.ndarray]]:
-        """Levenberg-Marquardt on every factor ever kept (needs ``keep_full_graph``).
-
-        Returns ``(T_map_base (K, 4, 4), {landmark id: position (m)})``; the incremental
-        estimates are the initial values. Used to check the incremental solution.
-        """
-        if not self.conf['keep_full_graph']:
-            raise MapperConfigError('batch_optimize needs keep_full_graph=True in the conf')
-        self._settle()
-        skip = {RecordKind.ANCHOR, RecordKind.RECOVERY, RecordKind.DEAD, RecordKind.MARGINAL}
-        if self._gnss_aligned:
-            skip.add(RecordKind.PRIOR)
-        graph = gtsam.NonlinearFactorGraph()
-        keys: set[int] = set()
-        for rec in self.st.all_recs:
-            if rec.removed or rec.kind in skip:
-                continue
-            graph.add(rec.factor)
-            keys.update(rec.factor.keys())
-        values = gtsam.Values()
-        for key in keys:
-            sym = gtsam.Symbol(key)
-            idx = sym.index()
-            if chr(sym.chr()) == 'x':
-                values.insert(key, gtsam.Pose3(self.st.kf_T_wc[idx]))
-            else:
-                if self._estimate.exists(key):
-                    xyz = self._estimate.atPoint3(key)
-                elif idx in self._final_xyz:
-                    xyz = self._final_xyz[idx]
-                else:
-                    xyz = self.st.lms[idx].xyz
-                values.insert(key, xyz)
-        params = gtsam.LevenbergMarquardtParams()
-        params.setMaxIterations(max_iterations)
-        result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
-        poses = np.array([
-            (result.atPose3(X(k)).matrix() if result.exists(X(k)) else self.st.kf_T_wc[k])
-            @ self.T_cb for k in range(len(self.st.kf_T_wc))])
-        lms = {}
-        for key in keys:
-            sym = gtsam.Symbol(key)
-            if chr(sym.chr()) == 'l':
-                lms[int(sym.index())] = result.atPoint3(key)
-        return poses.reshape(-1, 4, 4), lms
 
     # ------------------------------------------------------------------------------------------
     # tracks and labels
@@ -814,15 +751,15 @@ class Mapper:
         if len(b_a) >= c['vision_rotation_min_tracks']:
             self._rot_job = (ka, kb, np.array(b_a), np.array(b_b))
 
-    def _run_rotation_job(self, recs: list[FactorRecord]) -> None:
+    def _run_rotation_job(self, add: Callable[[FactorRecord], None]) -> None:
         """Verify the queued keyframe pair, if both are still in the window; its factor goes
-        to ``recs``."""
+        to ``add``."""
         job, self._rot_job = self._rot_job, None
         if job is None or job[0] not in self.st.kfs or job[1] not in self.st.kfs:
             return
         rec = self._rotation_rec(*job)
         if rec is not None:
-            recs.append(rec)
+            add(rec)
 
     def _rotation_rec(self, ka: int, kb: int, ba: np.ndarray, bb: np.ndarray
                       ) -> FactorRecord | None:
@@ -1116,7 +1053,7 @@ class Mapper:
             else:
                 w = np.maximum(w, self.conf['gnss_min_sigma_m'] ** 2)
                 cov = (V * w) @ V.T
-        if reason is None and self._gnss_aligned and T_wc_pred is not None:
+        if reason is None and self.st.gnss_aligned and T_wc_pred is not None:
             T_wb = T_wc_pred @ self.T_cb
             pred = T_wb[:3, :3] @ self.setup.arm_b + T_wb[:3, 3]
             d = pos - pred
@@ -1155,7 +1092,7 @@ class Mapper:
             moved = float(np.linalg.norm(ant_now - ant_then))
             cov = p.covariance + np.eye(3) * (0.02 + 0.02 * moved) ** 2
         self._gnss_pending = None
-        if self._gnss_aligned:
+        if self.st.gnss_aligned:
             f = fac.gnss_factor(X(kid), pos, cov, self.setup.arm_c, 2.0)
             recs.append(self.st.record(f, RecordKind.GNSS, kid))
             self._gnss_kids.add(kid)
@@ -1190,7 +1127,7 @@ class Mapper:
         if not 0.5 < s < 2.0:
             return
         self._apply_similarity(s, R, t)
-        self._gnss_aligned = True
+        self.st.gnss_aligned = True
         events.append(f'gnss_aligned: rms {rms:.2f} m, scale {s:.3f}')
         recs = [self.st.record(fac.gnss_factor(X(k), pos, cov, self.setup.arm_c, 2.0),
                                RecordKind.GNSS, k)
@@ -1198,13 +1135,11 @@ class Mapper:
         self._gnss_kids.update(r.kid for r in recs)
         self._gnss_pairs = []
         self.st.metric = True
-        if not (self._rebuild(recs, gtsam.Values(), {}, weak=False, events=events)
-                or self._rebuild(recs, gtsam.Values(), {}, weak=True, events=events)):
-            self._reset_window(self.st.last_kid, events)
-        self._estimate = self._smoother.calculateEstimate()
-        for kid in self.st.kfs:
-            if self._estimate.exists(X(kid)):
-                self.st.kf_T_wc[kid] = self._estimate.atPose3(X(kid)).matrix()
+        be = self.backend
+        if not (be.rebuild(recs, gtsam.Values(), {}, weak=False, events=events)
+                or be.rebuild(recs, gtsam.Values(), {}, weak=True, events=events)):
+            be.reset_window(self.st.last_kid, events)
+        be.refresh()
 
     def _apply_similarity(self, s: float, R: np.ndarray, t: np.ndarray) -> None:
         """Move the whole estimate by ``x -> s R x + t`` (map frame change, e.g. to ENU)."""
@@ -1221,14 +1156,15 @@ class Mapper:
         for kid in self.st.kfs:
             values.insert(X(kid), gtsam.Pose3(self.st.kf_T_wc[kid]))
         for lid, lm in self.st.lms.items():
-            xyz = self._estimate.atPoint3(L(lid)) if self._estimate.exists(L(lid)) else lm.xyz
+            est = self.backend.estimate
+            xyz = est.atPoint3(L(lid)) if est.exists(L(lid)) else lm.xyz
             lm.xyz = s * R @ xyz + t
             values.insert(L(lid), lm.xyz)
-        self._estimate = values
+        self.backend.move_estimate(values)
         for tr in self.st.tracks.values():
             if tr.frozen is not None:
                 tr.frozen = s * R @ tr.frozen + t
-        self._final_xyz = {k: s * R @ v + t for k, v in self._final_xyz.items()}
+        self.st.final_xyz = {k: s * R @ v + t for k, v in self.st.final_xyz.items()}
         self.st.history = [(st, move(T @ self.T_cb) @ self.T_bc) for st, T in self.st.history]
         self._floors = None
         levels = self.floor_levels()
@@ -1244,300 +1180,29 @@ class Mapper:
     # smoother
     # ------------------------------------------------------------------------------------------
 
-    def _make_smoother(self) -> gtsam.IncrementalFixedLagSmoother:
-        params = gtsam.ISAM2Params()
-        params.setRelinearizeThreshold(self.conf['relinearize_threshold'])
-        params.relinearizeSkip = self.conf['relinearize_skip']
-        params.findUnusedFactorSlots = True
-        return gtsam.IncrementalFixedLagSmoother(float(self.conf['window_keyframes']), params)
-
     def _commit(self, recs: list[FactorRecord], values: gtsam.Values, ts: dict[int, float],
                 lids: list[int], kid: int, events: list[str]) -> None:
-        """Send a keyframe's factors to the smoother, then bookkeeping and outlier checks."""
-        live = [r for r in self._pending_recs
-                if all(self._estimate.exists(k) or values.exists(k) for k in r.factor.keys())]
-        for r in self._pending_recs:
-            if r not in live:
-                r.removed = True
-        recs = live + recs
-        self._pending_recs = []
-        remove = sorted(self._pending_remove & set(self._recs))
-        graph = gtsam.NonlinearFactorGraph()
-        for rec in recs:
-            graph.add(rec.factor)
-        try:
-            self._smoother.update(graph, values, ts, [self._recs[r].index for r in remove])
-            new_idx = list(self._smoother.getISAM2Result().getNewFactorsIndices())
-            for _ in range(self.conf['extra_iterations']):
-                self._smoother.update()
-        except _SOLVER_ERRORS as exc:
-            self.st.stats['update_failures'] += 1
-            events.append(f'update_failed: {_first_line(exc)}')
-            self._recover(recs, values, ts, kid, events)
-        else:
-            for r in remove:
-                self._drop_rec(r, removed=True)
-            self._pending_remove.clear()
-            for rec, i in zip(recs, new_idx):
-                rec.index = int(i)
-                self._register(rec)
-        self._after_update(kid, lids, events)
-
-    def _register(self, rec: FactorRecord) -> None:
-        self._recs[rec.rid] = rec
-        if rec.kid in self.st.kfs:
-            self.st.kfs[rec.kid].rids.append(rec.rid)
-
-    def _drop_rec(self, rid: int, removed: bool = False) -> None:
-        """Forget a record of the smoother's factors; ``removed``: the factor is rejected (an
-        outlier, a superseded prior), not merely marginalised, and leaves the full graph."""
-        rec = self._recs.pop(rid, None)
-        if rec is not None and removed:
-            rec.removed = True
-
-    def _recover(self, recs: list[FactorRecord], values: gtsam.Values, ts: dict[int, float],
-                 kid: int, events: list[str]) -> None:
-        """Rebuild the smoother after a failed update: first everything with weak priors, then
-        without this keyframe's new landmarks, then the new pose alone; never raises."""
-        new_lids = {int(gtsam.Symbol(k).index()) for k in values.keys()
-                    if chr(gtsam.Symbol(k).chr()) == 'l'}
-        if self._rebuild(recs, values, ts, weak=True, events=events, marginals=True):
-            self.st.stats['recoveries'] += 1
-            events.append('update_recovered')
-            return
-        for lid in new_lids:
-            self._forget_landmark(lid)
-        poses = self._only_poses(values)
-        pose_ts = {k: v for k, v in ts.items() if poses.exists(k)}
-        without = [r for r in recs if r.lid not in new_lids]
-        odom = [r for r in without if r.kid == kid and r.kind == RecordKind.ODOM]
-        for attempt in (without, odom):
-            if self._rebuild(attempt, poses, pose_ts, weak=True, events=events,
-                             marginals=True):
-                kept = {r.rid for r in attempt}
-                for r in recs:
-                    if r.rid not in kept:
-                        r.removed = True
-                self.st.stats['recoveries'] += 1
-                events.append('update_recovered')
-                return
-        for r in recs:
-            r.removed = True
-        self._reset_window(kid, events)
-
-    def _reset_window(self, kid: int, events: list[str]) -> None:
-        """Last resort: a fresh window holding only keyframe ``kid`` (the map so far is kept)."""
-        events.append('window_reset')
-        for lid in list(self.st.lms):
-            self._finalize_landmark(lid, self.st.lms[lid].xyz)
-        for k in list(self.st.kfs):
-            if k != kid:
-                del self.st.kfs[k]
-        self._recs.clear()
-        self._pending_remove.clear()
-        self._pending_recs = []
-        self.st.lm_by_ts.clear()
-        self._smoother = self._make_smoother()
-        T = self.st.kf_T_wc[kid]
-        prior = fac.pose_prior(X(kid), T, self.setup.prior_cov())
-        rec = self.st.record(prior, RecordKind.ANCHOR, kid)
-        g = gtsam.NonlinearFactorGraph()
-        g.add(rec.factor)
-        v = gtsam.Values()
-        v.insert(X(kid), gtsam.Pose3(T))
-        try:
-            self._smoother.update(g, v, {X(kid): self.setup.smoother_ts(kid)})
-        except _SOLVER_ERRORS as exc:  # nothing left to keep: start over from the next frames
-            events.append(f'smoother_reset: {_first_line(exc)}')
-            rec.removed = True
-            self.st.kfs.clear()
-            self._smoother = self._make_smoother()
-            self._estimate = gtsam.Values()
-            self._lose_tracking(self.st.kf_stamps[kid], None, events)
-            return
-        rec.index = 0
-        self.st.kfs[kid].rids = []
-        self._register(rec)
-        self._estimate = self._smoother.calculateEstimate()
-
-    def _only_poses(self, values: gtsam.Values) -> gtsam.Values:
-        out = gtsam.Values()
-        for k in values.keys():
-            if chr(gtsam.Symbol(k).chr()) == 'x':
-                out.insert(k, values.atPose3(k))
-        return out
-
-    def _forget_landmark(self, lid: int) -> None:
-        lm = self.st.lms.pop(lid, None)
-        if lm is None:
-            return
-        self.st.lm_by_ts.get(lm.last_kf, set()).discard(lid)
-        for rid in lm.rids:
-            self._drop_rec(rid, removed=True)
-        tr = self.st.tracks.get(lm.track)
-        if tr is not None:
-            tr.lid = -1
-
-    def _marginal_recs(self, values: gtsam.Values) -> list[FactorRecord]:
-        """The smoother's marginal factors as records for a rebuilt smoother.
-
-        A fixed-lag smoother keeps what it knew of the states it marginalised as linear factors
-        on the remaining ones (GNSS-anchored heading, say). Each becomes a linear factor pinned
-        to the linearisation point it was computed at, so that it stays correct when the new
-        smoother moves or relinearises those variables. Empty when a factor involves a variable
-        missing from ``values`` (the caller then falls back to priors).
-        """
-        lin = self._smoother.getLinearizationPoint()
-        graph = self._smoother.getFactors()
-        out: list[FactorRecord] = []
-        for i in range(graph.size()):
-            f = graph.at(i)
-            if not isinstance(f, gtsam.LinearContainerFactor):
-                continue
-            point = gtsam.Values()
-            for k in f.keys():
-                if not (values.exists(k) and lin.exists(k)):
-                    return []
-                if chr(gtsam.Symbol(k).chr()) == 'x':
-                    point.insert(k, lin.atPose3(k))
-                else:
-                    point.insert(k, lin.atPoint3(k))
-            out.append(FactorRecord(self.st.next_rid,
-                                    gtsam.LinearContainerFactor(f.factor(), point),
-                                    RecordKind.MARGINAL))
-            self.st.next_rid += 1
-        return out
-
-    def _rebuild(self, new_recs: list[FactorRecord], new_values: gtsam.Values,
-                 new_ts: dict[int, float], weak: bool, events: list[str],
-                 marginals: bool = False) -> bool:
-        """A fresh smoother from the window's records and current estimates plus new items.
-
-        With ``marginals`` the old smoother's marginal factors (what it kept of the states it
-        marginalised: :meth:`_marginal_recs`) move into the new one; otherwise, or when it has
-        none, priors on the two oldest window poses stand in for them. Landmarks left with fewer
-        than two bearings get a prior; ``weak`` adds loose priors on every variable so that the
-        system is determined whatever failed.
-        """
-        c = self.conf
-        values = gtsam.Values()
-        ts: dict[int, float] = {}
-        for kid in self.st.kfs:
-            values.insert(X(kid), gtsam.Pose3(self.st.kf_T_wc[kid]))
-            ts[X(kid)] = self.setup.smoother_ts(kid)
-        for lid, lm in self.st.lms.items():
-            key = L(lid)
-            xyz = self._estimate.atPoint3(key) if self._estimate.exists(key) else lm.xyz
-            values.insert(key, xyz)
-            ts[key] = self.setup.smoother_ts(lm.last_kf)
-        for k in new_values.keys():
-            if not values.exists(k):
-                if chr(gtsam.Symbol(k).chr()) == 'x':
-                    values.insert(k, new_values.atPose3(k))
-                else:
-                    values.insert(k, new_values.atPoint3(k))
-        ts.update(new_ts)
-        marg = self._marginal_recs(values) if marginals else []
-        # the old priors stay when the marginal factors carry over (they are the same graph)
-        replaced = (RecordKind.ANCHOR, RecordKind.PRIOR) if not marg else ()
-        keep = [r for rid, r in self._recs.items()
-                if rid not in self._pending_remove and r.kind not in replaced]
-        keep = [r for r in keep if all(values.exists(k) for k in r.factor.keys())] + marg
-        new_ok = [r for r in new_recs if all(values.exists(k) for k in r.factor.keys())]
-        extra: list[FactorRecord] = []
-        # without them the two oldest window poses stand in for the lost marginal information
-        # (two poses also keep the scale of a camera-only map)
-        for n, k in enumerate([] if marg else sorted(self.st.kfs)[:2]):
-            if n > 0 and new_values.exists(X(k)):
-                break
-            kind = RecordKind.PRIOR if k == 0 and not self._gnss_aligned else RecordKind.ANCHOR
-            prior = fac.pose_prior(X(k), self.st.kf_T_wc[k], self.setup.prior_cov())
-            extra.append(self.st.record(prior,
-                                   kind, k))
-        n_bear: dict[int, int] = {}
-        for r in keep + new_ok:
-            if r.kind == RecordKind.BEARING:
-                n_bear[r.lid] = n_bear.get(r.lid, 0) + 1
-        for lid in self.st.lms:
-            if n_bear.get(lid, 0) < 2:
-                extra.append(self.st.record(fac.point_prior(L(lid), values.atPoint3(L(lid)), 0.2),
-                                       RecordKind.ANCHOR, lid=lid))
-        if weak:
-            sr, sm = c['recovery_sigma_rad'], c['recovery_sigma_m']
-            cov = np.diag([sr**2] * 3 + [sm**2] * 3)
-            for k in values.keys():
-                sym = gtsam.Symbol(k)
-                if chr(sym.chr()) == 'x':
-                    extra.append(self.st.record(fac.pose_prior(k, values.atPose3(k).matrix(), cov),
-                                           RecordKind.RECOVERY, int(sym.index())))
-                else:
-                    extra.append(self.st.record(fac.point_prior(k, values.atPoint3(k), sm),
-                                           RecordKind.RECOVERY, lid=int(sym.index())))
-        recs = keep + new_ok + extra
-        graph = gtsam.NonlinearFactorGraph()
-        for r in recs:
-            graph.add(r.factor)
-        smoother = self._make_smoother()
-        try:
-            smoother.update(graph, values, ts)
-            idx = list(smoother.getISAM2Result().getNewFactorsIndices())
-        except _SOLVER_ERRORS as exc:
-            events.append(f'rebuild_failed: {_first_line(exc)}')
-            for r in extra:
-                r.removed = True
-            return False
-        self._smoother = smoother
-        kept = {r.rid for r in keep}
-        for rid, r in list(self._recs.items()):
-            if rid not in kept:  # outliers and superseded priors are rejected for good
-                self._drop_rec(rid, removed=rid in self._pending_remove
-                               or r.kind in (RecordKind.ANCHOR, RecordKind.PRIOR))
-        self._recs = {}
-        for kf in self.st.kfs.values():
-            kf.rids = []
-        for r, i in zip(recs, idx):
-            r.index = int(i)
-            self._register(r)
-            if r.lid in self.st.lms and r.kind in (RecordKind.ANCHOR, RecordKind.RECOVERY):
-                self.st.lms[r.lid].rids.append(r.rid)
-        self._pending_remove.clear()
-        for kid in {gtsam.Symbol(k).index() for k in new_values.keys()
-                    if chr(gtsam.Symbol(k).chr()) == 'x'}:
-            if kid in self.st.kfs:
-                self.st.kfs[kid].rids = [r.rid for r in recs if r.kid == kid]
-        return True
-
-    def _after_update(self, kid: int, lids: list[int], events: list[str]) -> None:
-        """Read the estimate, finalise marginalised states, check the new observations."""
-        old = self._estimate
-        self._estimate = self._smoother.calculateEstimate()
-        est = self._estimate
-        self._max_ts = max(self._max_ts, kid)
-        for k in list(self.st.kfs):
-            if est.exists(X(k)):
-                self.st.kf_T_wc[k] = est.atPose3(X(k)).matrix()
-                self.st.kf_alt[k] = float((self.st.kf_T_wc[k] @ self.T_cb)[2, 3])
-            else:  # marginalised: its last estimate stays in the trajectory
-                for rid in self.st.kfs[k].rids:
-                    self._drop_rec(rid)
-                del self.st.kfs[k]
-                self._learn_odometry(k)
-        cutoff = self._max_ts - self.conf['window_keyframes'] + self.conf['marginalize_every']
-        for t in [t for t in self.st.lm_by_ts if t <= cutoff]:
-            for lid in list(self.st.lm_by_ts[t]):
-                if not est.exists(L(lid)):
-                    lm = self.st.lms[lid]
-                    xyz = old.atPoint3(L(lid)) if old.exists(L(lid)) else lm.xyz
-                    self._finalize_landmark(lid, xyz)
-            if not self.st.lm_by_ts.get(t):
-                self.st.lm_by_ts.pop(t, None)
-        for lid in lids:
-            lm = self.st.lms.get(lid)
-            if lm is not None and est.exists(L(lid)):
-                lm.xyz = est.atPoint3(L(lid))
+        """Send keyframe ``kid``'s factors to the backend; then learn from the keyframes it
+        marginalised, schedule the checks of the landmarks ``lids`` it observed and try the
+        GNSS alignment."""
+        self.backend.commit(recs, values, ts, kid, events)
+        for k in self.backend.sync(kid, lids):
+            self._learn_odometry(k)
         self._checks_due = list(lids)  # one commit per frame; the frame's _settle ran before
-        if self.conf['use_gnss'] and not self._gnss_aligned and self._gnss_pairs:
+        if self.conf['use_gnss'] and not self.st.gnss_aligned and self._gnss_pairs:
             self._try_gnss_align(events)
+
+    def batch_optimize(self, max_iterations: int = 100
+                       ) -> tuple[np.ndarray, dict[int, np.ndarray]]:
+        """Levenberg-Marquardt on every factor ever kept (needs ``keep_full_graph``).
+
+        Returns ``(T_map_base (K, 4, 4), {landmark id: position (m)})``; the incremental
+        estimates are the initial values. Used to check the incremental solution.
+        """
+        if not self.conf['keep_full_graph']:
+            raise MapperConfigError('batch_optimize needs keep_full_graph=True in the conf')
+        self._settle()
+        return self.backend.batch_optimize(max_iterations)
 
     def _learn_odometry(self, k: int) -> None:
         """Feed the odometry calibration with marginalised keyframe ``k`` and its predecessor:
@@ -1562,12 +1227,12 @@ class Mapper:
         lm = self.st.lms.pop(lid)
         self.st.lm_by_ts.get(lm.last_kf, set()).discard(lid)
         for rid in lm.rids:
-            self._drop_rec(rid)
+            self.backend.drop(rid)
         tr = self.st.tracks.get(lm.track)
         if tr is not None and lm.alive:
             tr.frozen = np.array(xyz)
         if self.conf['keep_full_graph']:
-            self._final_xyz[lid] = np.array(xyz)
+            self.st.final_xyz[lid] = np.array(xyz)
         if self._publishable(lm):
             levels = self.floor_levels()
             seen = self._seen_alt(lm, levels)
@@ -1584,10 +1249,10 @@ class Mapper:
         mean time per frame is unchanged). Also run before the map is read."""
         if self._checks_due is not None:
             lids, self._checks_due = self._checks_due, None
-            self._check_depths(self._estimate)
+            self._check_depths(self.backend.estimate)
             self._check_outliers(lids)
         if self._rot_job is not None:
-            self._run_rotation_job(self._pending_recs)
+            self._run_rotation_job(self.backend.queue)
 
     def _check_depths(self, est: gtsam.Values) -> None:
         """Kill the window's landmarks that the smoother moved beyond ``lm_lost_depth_m`` of
@@ -1622,7 +1287,7 @@ class Mapper:
             if lm is None or not lm.alive:
                 continue
             for rid in lm.rids:
-                rec = self._recs.get(rid)
+                rec = self.backend.records.get(rid)
                 if rec is not None and rec.kind == RecordKind.BEARING:
                     recs.append(rec)
         if not recs:
@@ -1653,8 +1318,7 @@ class Mapper:
                 self._kill_landmark(lid)
                 continue
             for r in np.flatnonzero((inv == j) & bad).tolist():
-                self._pending_remove.add(recs[r].rid)
-                recs[r].removed = True
+                self.backend.remove(recs[r].rid)
                 lm.n_obs -= 1
 
     def _kill_landmark(self, lid: int) -> None:
@@ -1664,12 +1328,11 @@ class Mapper:
         lm.alive = False
         self.st.stats['landmarks_killed'] += 1
         for rid in lm.rids:
-            if rid in self._recs:
-                self._pending_remove.add(rid)
-                self._recs[rid].removed = True
+            if rid in self.backend.records:
+                self.backend.remove(rid)
         rec = self.st.record(fac.point_prior(L(lid), lm.xyz, 10.0), RecordKind.DEAD, lid=lid)
         lm.rids.append(rec.rid)
-        self._pending_recs.append(rec)
+        self.backend.queue(rec)
         tr = self.st.tracks.get(lm.track)
         if tr is not None:
             tr.rejected = True

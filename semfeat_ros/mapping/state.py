@@ -221,6 +221,7 @@ class MapState:
         self.state = 'initializing'  # 'initializing', 'tracking', 'odometry_only' or 'lost'
         self.metric = False
         self.scale_from_odometry = False
+        self.gnss_aligned = False  # the map frame is ENU
         self.tracks: dict[int, Track] = {}
         # the trajectory: every keyframe ever made, in order (kid = index)
         self.kf_stamps: list[int] = []
@@ -233,6 +234,7 @@ class MapState:
         self.next_lid = 0
         self.next_rid = 0
         self.all_recs: list[FactorRecord] = []  # every record made (keep_full_graph)
+        self.final_xyz: dict[int, np.ndarray] = {}  # marginalised landmarks (keep_full_graph)
         self.history: list[tuple[int, np.ndarray]] = []  # (stamp, T_wc) of the last frames
         self.link: dict[str, Any] | None = None  # where tracking was lost (kid, stamp, T_wc, xi)
         self.stats: dict[str, int] = dict.fromkeys(STATS_KEYS, 0)
