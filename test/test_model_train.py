@@ -308,6 +308,12 @@ def test_shipped_config_files_match_the_code() -> None:
         stage3['init_weights'].replace('train_v5', 'train_v8')
     assert meta['training']['train_only'] == stage4['train_only']
     assert stage4['data'] == conf['data']  # stage 1's views and photos
+    stage5 = load_train_conf(read_config(REPO / 'config' / 'distill.yaml'))
+    assert stage5['network'] == shipped.conf and stage5['teacher'] == 'xfeat'
+    assert stage5['train_only'] == [] and stage5['warmup_fraction'] == 0.0  # the whole network
+    assert stage5['init_weights'] == stage4['init_weights'].replace('train_v8', 'train_v9')
+    assert stage5['loss']['distill_desc_weight'] > 0 and stage5['data']['photo_score'] == 'aliked'
+    assert stage5['loss']['seg_lovasz_weight'] == stage2['loss']['seg_lovasz_weight']
     probe = load_train_conf(read_config(REPO / 'config' / 'finetune_joint.yaml'))
     assert probe['network'] == v5 and probe['train_only'] == []  # a probe over stage 2
     assert probe['loss'] == stage2['loss'] and probe['init_weights'] != stage2['init_weights']
