@@ -33,9 +33,13 @@ BROKEN = 'drive_broken'
 def ray_local() -> object:
     import ray
 
-    ray.init(address='local', num_cpus=2, include_dashboard=False, log_to_driver=False,
-             configure_logging=False, object_store_memory=batch.LOCAL_OBJECT_STORE,
-             _node_ip_address='127.0.0.1')
+    try:
+        ray.init(address='local', num_cpus=2, include_dashboard=False, log_to_driver=False,
+                 configure_logging=False, object_store_memory=batch.LOCAL_OBJECT_STORE,
+                 _node_ip_address='127.0.0.1')
+    except BaseException:
+        ray.shutdown()
+        raise
     yield ray
     ray.shutdown()
 
@@ -186,15 +190,13 @@ def test_step_without_marker_is_redone(runs: dict, inputs: dict[str, Path]) -> N
     (out / 'drive_b' / 'map.done.json').unlink()
     stale = out / 'drive_b' / 'map' / 'stale.txt'
     stale.write_text('left by an interrupted run\n')
-    rc = batch.cli(args(inputs, out, '--steps', 'map', '--no-figures'))
+    rc = batch.cli(args(inputs, out, '--steps', 'map'))
     data, rows = summary(out)
-    assert rc == 1 and data['tasks_run'] == 3  # drive_b's map: options changed (--no-figures)
-    assert rows['drive_b']['status'] == 'ok' and rows['drive_a']['status'] == 'ok'
+    assert rc == 1 and data['tasks_run'] == 2  # drive_b's map and the corrupt recording's
+    assert rows['drive_b']['status'] == 'ok' and rows['drive_a']['status'] == 'skipped'
+    assert rows['drive_b']['steps']['map']['status'] == 'ok'
     assert not stale.exists() and (out / 'drive_b' / 'map.done.json').is_file()
-    assert not (out / 'drive_b' / 'map' / 'cloud.png').exists()
-    rc = batch.cli(args(inputs, out, '--steps', 'map', '--no-figures'))
-    data, rows = summary(out)
-    assert data['tasks_run'] == 1 and rows['drive_b']['status'] == 'skipped'
+    assert {p.name for p in (out / 'drive_b' / 'map').iterdir()} == set(MAP_FILES.values())
 
 
 @pytest.mark.parametrize('case,expected', [
@@ -264,11 +266,11 @@ def test_ctrl_c_leaves_no_process(when: str, inputs: dict[str, Path], tmp_path: 
     out = tmp_path / 'out'
     tag = f'{os.getpid()}-{when}-{time.monotonic_ns()}'
     proc = subprocess.Popen([sys.executable, '-m', 'semfeat_ros.tools.batch',
-                             *args(inputs, out, '--steps', 'map', '--num-cpus', '1')],
+                             *args(inputs, out, '--steps', 'features', '--num-cpus', '1')],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env={**os.environ, 'PYTHONUNBUFFERED': '1', 'BATCH_TEST_TAG': tag},
                             preexec_fn=_default_sigint)
-    ready = 'ray::DashboardAgent' if when == 'starting' else 'ray::map:'
+    ready = 'ray::DashboardAgent' if when == 'starting' else 'ray::features:'
     seen: set[int] = set()
     try:
         deadline = time.monotonic() + 60
@@ -287,9 +289,12 @@ def test_ctrl_c_leaves_no_process(when: str, inputs: dict[str, Path], tmp_path: 
             time.sleep(0.1)
         _, err = proc.communicate(timeout=5)
     finally:
-        if proc.poll() is None:
+        if proc.poll() is None:  # the test failed: end the tool and what it started
+            seen |= started_by(proc.pid, tag, processes())
             proc.kill()
             proc.wait()
+            for pid in seen & set(processes()):
+                os.kill(pid, signal.SIGKILL)
     assert proc.returncode == 130, err
     assert 'interrupted' in err
     deadline = time.monotonic() + 15

@@ -565,7 +565,53 @@ def _signals_held() -> Iterator[list[int]]:
             signal.signal(s, h if h is not None else signal.SIG_DFL)
 
 
+def _ray_children() -> list[int]:
+    """Ray processes below this one (Linux ``/proc``; empty elsewhere): the services and
+    agents a local instance started, found by parent links and Ray's command lines."""
+    parents: dict[int, list[int]] = {}
+    names: dict[int, str] = {}
+    for d in Path('/proc').glob('[0-9]*'):
+        try:
+            ppid = int((d / 'stat').read_text().rsplit(')', 1)[1].split()[1])
+            names[int(d.name)] = (d / 'cmdline').read_bytes().replace(b'\0', b' ').decode(
+                errors='replace')
+        except (OSError, IndexError, ValueError):
+            continue
+        parents.setdefault(ppid, []).append(int(d.name))
+    found, todo = [], [os.getpid()]
+    while todo:
+        for child in parents.get(todo.pop(), []):
+            found.append(child)
+            todo.append(child)
+    return [p for p in found if names.get(p, '').startswith('ray::')
+            or '/ray/' in names.get(p, '')]
+
+
+def _end_ray_children() -> None:
+    """End the Ray processes below this one: stopped first (SIGSTOP), so that none starts
+    another unseen, until no new one appears; then killed."""
+    held: set[int] = set()
+    for _ in range(10):
+        new = set(_ray_children()) - held
+        if not new:
+            break
+        for pid in new:
+            try:
+                os.kill(pid, signal.SIGSTOP)
+            except (ProcessLookupError, PermissionError):
+                pass
+        held |= new
+        time.sleep(0.1)
+    for pid in held:
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
+
+
 def _start_ray(conf: BatchConfig) -> None:
+    """``ray.init`` for ``conf``; a local instance whose start failed half-way is stopped,
+    its processes included (``ray.shutdown`` does not know of them then)."""
     import ray
 
     try:
@@ -575,7 +621,9 @@ def _start_ray(conf: BatchConfig) -> None:
                      object_store_memory=LOCAL_OBJECT_STORE, _node_ip_address='127.0.0.1')
         else:
             ray.init(address=conf.address, log_to_driver=False, configure_logging=False)
-    except (ConnectionError, RuntimeError, ValueError, OSError) as exc:
+    except Exception as exc:  # Ray raises a bare Exception too (node start-up time-out)
+        if conf.address is None:
+            _end_ray_children()
         ray.shutdown()
         where = 'a local Ray instance' if conf.address is None else f'Ray at {conf.address}'
         raise BatchRayError(f'cannot start or reach {where}: {_short(str(exc))}') from exc
