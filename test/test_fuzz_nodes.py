@@ -325,7 +325,11 @@ def test_fuzz_matcher_node(isolated_ros: int) -> None:
     from semfeat_ros.nodes.matcher_node import MatcherNode
 
     rng = np.random.default_rng(SEED + 1)
-    f = Fuzz(lambda ctx: MatcherNode(context=ctx), isolated_ros)
+    # CameraInfo is a best-effort input; reliable here (a QoS override) so that no bad message
+    # is lost on a loaded machine: every one is counted
+    f = Fuzz(lambda ctx: MatcherNode(context=ctx, parameter_overrides=[Parameter(
+        'qos_overrides./camera/front/camera_info.subscription.reliability', value='reliable')]),
+        isolated_ros)
     node = f.node
     c = node.health.counters
     try:
@@ -333,6 +337,9 @@ def test_fuzz_matcher_node(isolated_ros: int) -> None:
         f.probe.create_subscription(PointCloud2, '/semfeat/tracks', tracks.append, 10)
         pub_info = f.publisher(CameraInfo, '/camera/front/camera_info')
         pub_feat = f.publisher(PointCloud2, '/semfeat/features')
+        (sub,) = [i for i in f.probe.get_subscriptions_info_by_topic('/camera/front/camera_info')
+                  if i.node_name == 'matcher_node']
+        assert sub.qos_profile.reliability == ReliabilityPolicy.RELIABLE  # the override applied
         pub_info.publish(good_info())
         assert f.wait(lambda: node._camera is not None)
         rss0 = rss_mb()
@@ -355,7 +362,8 @@ def test_fuzz_mapping_node(isolated_ros: int, tmp_path: Path) -> None:
 
     rng = np.random.default_rng(SEED + 2)
     f = Fuzz(lambda ctx: MappingNode(context=ctx, parameter_overrides=[
-        Parameter('output_dir', value=str(tmp_path)), Parameter('use_odometry', value=False)]),
+        Parameter('output_dir', value=str(tmp_path)), Parameter('use_odometry', value=False),
+        Parameter('input_reliability', value='reliable')]),
         isolated_ros)
     node = f.node
     c = node.health.counters
@@ -387,7 +395,8 @@ def test_fuzz_mapping_node_odometry(isolated_ros: int) -> None:
 
     rng = np.random.default_rng(SEED + 3)
     f = Fuzz(lambda ctx: MappingNode(context=ctx, parameter_overrides=[
-        Parameter('output_dir', value='')]), isolated_ros)
+        Parameter('output_dir', value=''), Parameter('input_reliability', value='reliable')]),
+        isolated_ros)
     c = f.node.health.counters
     try:
         pub_odom = f.publisher(Odometry, '/vehicle/odom')

@@ -46,11 +46,15 @@ def planar(T: np.ndarray) -> np.ndarray:
 
 class Harness:
     """mapping_node and a probe node (tracks, CameraInfo and odometry publishers) on one
-    executor spinning in a thread; ``rclpy`` is initialised here and shut down by close()."""
+    executor spinning in a thread; ``rclpy`` is initialised here and shut down by close().
+    ``reliable``: the sensor inputs reliable, as in a bag replay (the probe publishes reliable;
+    a best-effort input may lose a sample on a loaded machine, and these tests count them)."""
 
-    def __init__(self, overrides: list[Parameter], name: str) -> None:
+    def __init__(self, overrides: list[Parameter], name: str, reliable: bool = True) -> None:
         from semfeat_ros.nodes.mapping_node import MappingNode
 
+        if reliable:
+            overrides = [Parameter('input_reliability', value='reliable'), *overrides]
         rclpy.init()
         self.node = MappingNode(parameter_overrides=overrides)
         self.probe = Node(name)
@@ -217,8 +221,9 @@ def test_frames_wait_for_odometry_that_arrives_after_them(isolated_ros) -> None:
             if i >= lag:
                 h.send_odom(frames[i - lag + 1], np.eye(6) * 1e-4)
             if i == 3 * lag:  # frames 0 .. i - lag + 1 have their odometry; the rest wait
+                assert h.wait(lambda k=i: node.health.counters.received == k + 1)
+                assert h.wait(lambda k=i: node.health.counters.processed == k - lag + 2)
                 time.sleep(0.3)
-                assert node.health.counters.received == i + 1
                 assert node.health.counters.processed == i - lag + 2
         for i in range(len(frames) - lag + 1, len(frames)):
             h.send_odom(frames[i], np.eye(6) * 1e-4)
@@ -410,3 +415,151 @@ def test_extrinsic_from_tf_static_and_tf_without_odometry(isolated_ros) -> None:
             assert (t.header.frame_id, t.child_frame_id) == ('map', 'base_link')
     finally:
         h.close()
+
+
+@pytest.mark.ros_domain(87)
+def test_sensor_qos_silent_inputs_and_diagnostics_levels(isolated_ros) -> None:
+    """Best-effort CameraInfo, odometry and GNSS publishers are matched and received; a
+    best-effort tracks publisher against the reliable tracks input is an incompatible-QoS event;
+    a silent input makes /diagnostics ERROR; drops above drop_warn_ratio make it WARN."""
+    from diagnostic_msgs.msg import DiagnosticStatus
+    from rclpy.qos import qos_profile_sensor_data
+    from sensor_msgs.msg import NavSatFix
+
+    h = Harness([Parameter('input_timeout_s', value=1.0)], 'probe_qos', reliable=False)
+    assert h.node.conf.input_reliability == 'best_effort'  # the default
+    node, probe, wait = h.node, h.probe, h.wait
+    info = probe.create_publisher(CameraInfo, '/camera/front/camera_info',
+                                  qos_profile_sensor_data)
+    odom = probe.create_publisher(Odometry, '/vehicle/odom', qos_profile_sensor_data)
+    gnss = probe.create_publisher(NavSatFix, '/gnss/fix', qos_profile_sensor_data)
+    tracks = probe.create_publisher(PointCloud2, '/semfeat/tracks', qos_profile_sensor_data)
+    try:
+        assert wait(lambda: all(p.get_subscription_count() > 0 for p in (info, odom, gnss)), 20)
+        assert tracks.get_subscription_count() == 0  # reliable input, best-effort publisher
+        assert wait(lambda: node.health.io.incompatible >= 1, 20)
+        frames = drive_frames(2)
+        for i in range(50):  # best effort: sent until taken (odometry stamps increasing)
+            info.publish(model_to_camera_info(CAM, stamp_ns=0, frame_id='camera_front_optical',
+                                              msg_cls=CameraInfo))
+            odom.publish(odometry_from_numpy(planar(frames[0].T_map_base), None,
+                                             stamp_ns=frames[0].tracks.stamp_ns + i * 10**6,
+                                             frame_id='odom', child_frame_id='base_link',
+                                             msg_cls=Odometry))
+            if wait(lambda: node.feeder is not None and node.feeder.last_odom >= 0, 0.1):
+                break
+        assert node.feeder is not None and node.feeder.last_odom >= 0
+        # nothing on the tracks input since start-up: ERROR, naming the topic
+        assert wait(lambda: node.health.status().level == DiagnosticStatus.ERROR, 10)
+        status = node.health.status()
+        assert status.hardware_id == '/mapping_node'
+        assert 'no tracks for' in status.message and '/semfeat/tracks' in status.message
+        assert 'since start-up' in status.message, status.message
+        h.pub_tracks.publish(tracks_to_msg(  # the reliable publisher: the input is alive
+            frames[0].tracks.pixel, frames[0].tracks.bearing, frames[0].tracks.label,
+            frames[0].tracks.track_id, np.full(len(frames[0].tracks), 2),
+            np.ones(len(frames[0].tracks)), stamp_ns=frames[0].tracks.stamp_ns,
+            frame_id='camera_front_optical', msg_cls=PointCloud2))
+        assert wait(lambda: node.health.counters.received >= 1, 10)
+        assert 'no tracks' not in node.health.status().message
+        values = {kv.key: kv.value for kv in node.health.status().values}
+        assert int(values['qos_incompatible']) >= 1
+        # drops: WARN above drop_warn_ratio (0.2) of the frames received in the last period
+        node.health.io.input_timeout_s = 0.0
+        node.health.counters.rejected = node.health.counters.errors = 0
+        node.health.io.incompatible = 0
+        node.health.publish()
+        node.health.counters.received += 10
+        node.health.counters.processed += 10
+        node.health.counters.dropped += 1
+        node.health.publish()
+        assert node.health.status().level == DiagnosticStatus.OK, node.health.status().message
+        node.health.counters.received += 10
+        node.health.counters.dropped += 5
+        node.health.publish()
+        status = node.health.status()
+        assert status.level == DiagnosticStatus.WARN and '5 of 10 frames dropped' in \
+            status.message, status.message
+    finally:
+        h.close()
+
+
+def call(h: Harness, name: str) -> Trigger.Response:
+    client = h.probe.create_client(Trigger, f'/mapping_node/{name}')
+    assert client.wait_for_service(timeout_sec=10)
+    future = client.call_async(Trigger.Request())
+    assert h.wait(future.done, 30)
+    return future.result()
+
+
+@pytest.mark.ros_domain(88)
+def test_pause_resume_and_reset_services(isolated_ros) -> None:
+    frames = drive_frames(36)
+    h = Harness([Parameter('use_gnss', value=False), Parameter('cloud_period_s', value=0.2)],
+                'probe_services')
+    node, wait = h.node, h.wait
+    clouds: list[PointCloud2] = []
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    h.probe.create_subscription(PointCloud2, '/semantic_cloud', clouds.append, latched)
+
+    def feed(fs: list) -> None:
+        for f in fs:
+            h.send_odom(f, np.eye(6) * 1e-4)
+            h.send_tracks(f)
+            time.sleep(0.02)
+
+    def keyframes() -> int:
+        with node._lock:
+            return len(node.session.mapper.trajectory()[0])
+
+    try:
+        assert not call(h, 'reset').success  # no CameraInfo: nothing to reset
+        h.start()
+        h.settle_tracks_topic()
+        feed(frames[:16])
+        assert wait(lambda: node.health.counters.processed >= 16)
+        assert not call(h, 'resume').success  # not paused
+        assert call(h, 'pause').success and not call(h, 'pause').success
+        feed(frames[16:22])  # ignored and counted, never mapped
+        assert wait(lambda: node.health.extra['frames_paused'] == '6')
+        assert node.health.counters.processed == 16 and node.health.counters.received == 16
+        assert call(h, 'resume').success
+        feed(frames[22:28])
+        assert wait(lambda: node.health.counters.processed >= 22)
+        n = keyframes()
+        assert n > 3
+        res = call(h, 'reset')
+        assert res.success and f'{n} keyframes' in res.message, res.message
+        assert keyframes() == 0
+        assert wait(lambda: clouds and semantic_cloud_from_msg(clouds[-1]).xyz.shape[0] == 0)
+        feed(frames[28:])  # a new map from the next frames, same camera
+        assert wait(lambda: node.health.counters.processed >= 30)
+        assert wait(lambda: keyframes() >= 1)
+        assert node.resets == {'camera': 0, 'time': 0} and node.health.counters.rejected == 0
+        assert node.health.extra['resets_service'] == '1'
+    finally:
+        h.close()
+
+
+@pytest.mark.ros_domain(89)
+def test_topics_and_services_follow_the_namespace(isolated_ros) -> None:
+    from semfeat_ros.nodes.mapping_node import MappingNode
+
+    rclpy.init()
+    node = None
+    try:
+        node = MappingNode(namespace='car1')
+        inputs = {w.name: w.topic for w in node.health.io.inputs.values()}
+        assert inputs == {'CameraInfo': '/car1/camera/front/camera_info',
+                          'tracks': '/car1/semfeat/tracks'}
+        assert node.pub_cloud.topic_name == '/car1/semantic_cloud'
+        assert node.pub_path.topic_name == '/car1/semfeat/path'
+        assert node.pub_tf.topic_name == '/tf'  # TF and /diagnostics stay global
+        services = {s.service_name for s in node.services}
+        assert {f'/car1/mapping_node/{n}' for n in ('save_map', 'reset', 'pause', 'resume')} \
+            <= services
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()

@@ -1,4 +1,10 @@
-"""Per-node health accounting published on /diagnostics (diagnostic_msgs/DiagnosticArray)."""
+"""Per-node health accounting published on /diagnostics (diagnostic_msgs/DiagnosticArray).
+
+One status per node, its hardware_id the node's fully qualified name. Level: ERROR while an
+input the node needs is silent for ``input_timeout_s``; WARN on processing errors, rejected
+inputs, more than ``drop_warn_ratio`` of the frames received since the previous report dropped,
+incompatible QoS, or no output yet; OK otherwise.
+"""
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -12,6 +18,7 @@ from rclpy.executors import Executor, ExternalShutdownException
 import rclpy.logging
 from rclpy.node import Node
 
+from semfeat_ros.nodes.qos import Endpoints
 from semfeat_ros.runtime import Counters, LatencyStats, RateMeter
 
 
@@ -22,9 +29,14 @@ class NodeHealth:
     published, on the node's clock (sim time during bag replay with /clock).
     """
 
-    def __init__(self, node: Node, hardware_id: str = 'camera_front'):
+    def __init__(self, node: Node, *, input_timeout_s: float = 0.0,
+                 drop_warn_ratio: float = 1.0):
         self._node = node
-        self._hardware_id = hardware_id
+        self._hardware_id = node.get_fully_qualified_name()
+        self.io = Endpoints(node, input_timeout_s)
+        self.drop_warn_ratio = drop_warn_ratio
+        self._reported = (0, 0)  # received, dropped at the previous publish()
+        self._window = (0, 0)  # received, dropped between the two previous publish() calls
         self.counters = Counters()
         self.input_rate = RateMeter()
         self.output_rate = RateMeter()
@@ -32,7 +44,7 @@ class NodeHealth:
         self.compute = LatencyStats()
         self.last_error = ''
         self.extra: dict[str, str] = {}
-        self._pub = node.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self._pub = self.io.publish(DiagnosticArray, '/diagnostics', 10)
 
     def on_input(self) -> None:
         self.counters.received += 1
@@ -77,10 +89,20 @@ class NodeHealth:
             level, message = DiagnosticStatus.WARN, f'{c.errors} processing errors'
         elif c.rejected:
             level, message = DiagnosticStatus.WARN, f'{c.rejected} inputs rejected'
+        received, dropped = self._window
+        if received and dropped > self.drop_warn_ratio * received:
+            level, message = (DiagnosticStatus.WARN,
+                              f'{dropped} of {received} frames dropped since the last report')
+        if self.io.incompatible:
+            level, message = (DiagnosticStatus.WARN,
+                              f'{self.io.incompatible} incompatible QoS events')
         if c.received and not c.processed:
             level, message = DiagnosticStatus.WARN, 'no output yet'
             if c.waiting:  # e.g. a wrong camera_info topic: say so where operators look
                 message += f': {c.waiting} inputs waiting for CameraInfo'
+        silent = self.io.silent()
+        if silent:
+            level, message = DiagnosticStatus.ERROR, '; '.join(silent)
 
         def fmt(x: float) -> str:
             return 'nan' if math.isnan(x) else f'{x:.4f}'
@@ -94,6 +116,7 @@ class NodeHealth:
             'frames_dropped': str(c.dropped), 'errors_rejected': str(c.rejected),
             'frames_waiting_camera_info': str(c.waiting),
             'processing_errors': str(c.errors), 'last_error': self.last_error,
+            'qos_incompatible': str(self.io.incompatible), 'silent_inputs': str(len(silent)),
             **self.extra,
         }
         return DiagnosticStatus(
@@ -102,6 +125,9 @@ class NodeHealth:
             values=[KeyValue(key=k, value=v) for k, v in values.items()])
 
     def publish(self) -> None:
+        now = (self.counters.received, self.counters.dropped)
+        self._window = (now[0] - self._reported[0], now[1] - self._reported[1])
+        self._reported = now
         msg = DiagnosticArray()
         msg.header.stamp = self._node.get_clock().now().to_msg()
         msg.status = [self.status()]

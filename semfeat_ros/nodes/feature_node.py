@@ -21,7 +21,6 @@ from typing import Any
 
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 
 from msg_adapters import camera_info_to_model, features_to_msg, numpy_to_image, stamp_to_ns
@@ -32,6 +31,7 @@ from semfeat_ros.frontend import FrontendConfig, FrontendError, SemanticFrontend
 from semfeat_ros.labels import load_labels
 from semfeat_ros.nodes.diagnostics import NodeHealth, spin_node, wall_time
 from semfeat_ros.nodes.params import declare_config, guard_updates, param
+from semfeat_ros.nodes.qos import input_qos
 from semfeat_ros.runtime import ChangeGate, LatestWorker, RateLimit, cpu_has_bf16
 
 
@@ -42,15 +42,17 @@ class FeatureNodeConfig:
     input_transport: str = param('raw', 'Camera input: raw sensor_msgs/Image or its '
                                  'CompressedImage (topic image_topic + "/compressed")',
                                  choices=('raw', 'compressed'), read_only=True)
-    image_topic: str = param('/camera/front/image_raw', 'Raw image topic', read_only=True)
-    camera_info_topic: str = param('/camera/front/camera_info', 'CameraInfo topic',
+    image_topic: str = param('camera/front/image_raw', 'Raw image topic', read_only=True)
+    camera_info_topic: str = param('camera/front/camera_info', 'CameraInfo topic',
                                    read_only=True)
-    features_topic: str = param('/semfeat/features', 'Output PointCloud2 of keypoints',
+    features_topic: str = param('semfeat/features', 'Output PointCloud2 of keypoints',
                                 read_only=True)
-    mask_topic: str = param('/semfeat/semantic_mask', 'Output mono8 class-id mask (the colour '
+    mask_topic: str = param('semfeat/semantic_mask', 'Output mono8 class-id mask (the colour '
                             'overlay is published on <mask_topic>/color)', read_only=True)
-    input_reliability: str = param('best_effort', 'QoS of the image inputs: best_effort (sensor '
-                                   'data) or reliable (bag replay without drops at the source)',
+    input_reliability: str = param('best_effort', 'QoS reliability of the image and CameraInfo '
+                                   'inputs: best_effort (sensor data; matches reliable and '
+                                   'best-effort publishers) or reliable (bag replay without '
+                                   'drops at the source)',
                                    choices=('best_effort', 'reliable'), read_only=True)
     input_depth: int = param(2, 'QoS history depth of the image inputs', range=(1, 100),
                              read_only=True)
@@ -103,6 +105,13 @@ class FeatureNodeConfig:
         'waits for it', range=(0.0, 3600.0), read_only=True)
     max_image_pixels: int = param(50_000_000, 'Frames with more pixels are rejected',
                                   range=(1, 500_000_000), read_only=True)
+    input_timeout_s: float = param(
+        5.0, 'An input the node needs (images, CameraInfo) silent this long is logged and '
+        'reported as ERROR on /diagnostics (s); 0 = off',
+        range=(0.0, 3600.0), read_only=True)
+    drop_warn_ratio: float = param(0.2, 'Share of the frames received since the previous '
+                                   '/diagnostics report that, dropped, makes it WARN',
+                                   range=(0.0, 1.0), read_only=True)
     diagnostics_period_s: float = param(1.0, 'Period of /diagnostics (s)', range=(0.1, 60.0),
                                         read_only=True)
 
@@ -124,7 +133,8 @@ class FeatureNode(Node):
         self.conf = declare_config(self, FeatureNodeConfig)
         guard_updates(self, FeatureNodeConfig)
         c = self.conf
-        self.health = NodeHealth(self)
+        self.health = NodeHealth(self, input_timeout_s=c.input_timeout_s,
+                                 drop_warn_ratio=c.drop_warn_ratio)
         self.labels = load_labels()
         self.frontend = SemanticFrontend(frontend_config(c))
         warmup = [int(v) for v in c.warmup_size]
@@ -142,19 +152,19 @@ class FeatureNode(Node):
         self._worker: LatestWorker = LatestWorker(self._process, self.health.on_error,
                                                   name='feature-inference')
 
-        qos_in = QoSProfile(depth=c.input_depth, reliability=(
-            ReliabilityPolicy.BEST_EFFORT if c.input_reliability == 'best_effort'
-            else ReliabilityPolicy.RELIABLE), history=qos_profile_sensor_data.history,
-            durability=qos_profile_sensor_data.durability)
+        io = self.health.io
+        qos_in = input_qos(c.input_reliability, c.input_depth)
         if c.input_transport == 'raw':
-            self.create_subscription(Image, c.image_topic, self._on_image, qos_in)
+            io.subscribe(Image, c.image_topic, self._on_image, qos_in, watch='image')
         else:
-            self.create_subscription(CompressedImage, c.image_topic + '/compressed',
-                                     self._on_image, qos_in)
-        self.create_subscription(CameraInfo, c.camera_info_topic, self._on_camera_info, 10)
-        self.pub_features = self.create_publisher(PointCloud2, c.features_topic, 10)
-        self.pub_mask = self.create_publisher(Image, c.mask_topic, 10)
-        self.pub_color = self.create_publisher(Image, c.mask_topic + '/color', 10)
+            io.subscribe(CompressedImage, c.image_topic + '/compressed', self._on_image, qos_in,
+                         watch='image')
+        io.subscribe(CameraInfo, c.camera_info_topic, self._on_camera_info,
+                     input_qos(c.input_reliability),
+                     watch='CameraInfo' if c.require_camera_info else None)
+        self.pub_features = io.publish(PointCloud2, c.features_topic, 10)
+        self.pub_mask = io.publish(Image, c.mask_topic, 10)
+        self.pub_color = io.publish(Image, c.mask_topic + '/color', 10)
         self.create_timer(c.diagnostics_period_s, self._publish_diagnostics)
         self.get_logger().info(
             f'feature_node ready: {c.input_transport} input on {c.image_topic}, '

@@ -4,6 +4,9 @@ Feeds ``/semfeat/tracks`` into the incremental factor-graph mapper (GTSAM fixed-
 bearing factors) together with the optional ``/vehicle/odom`` and ``/gnss/fix``; publishes
 ``/semfeat/odometry`` (map -> base_link, z = altitude) and ``/semfeat/path`` every frame and the
 labeled map ``/semantic_cloud`` (latched, transient_local depth 1) at a bounded rate.
+Services (std_srvs/Trigger): ``~/save_map`` (below), ``~/reset`` (a new, empty map with the same
+camera), ``~/pause`` and ``~/resume`` (tracks ignored and counted in between; odometry and GNSS
+still buffered).
 
 TF (REP-105): every mapped frame broadcasts, stamped with its image time, map -> odom and
 odom -> base_link (the wheel odometry interpolated at that stamp) once wheel odometry is
@@ -68,6 +71,7 @@ from semfeat_ros.mapping.session import FedFrame, FrameFeeder, MappingSession, S
 from semfeat_ros.mapping.types import Tracks
 from semfeat_ros.nodes.diagnostics import NodeHealth, spin_node
 from semfeat_ros.nodes.params import declare_config, guard_updates, param
+from semfeat_ros.nodes.qos import input_qos
 from semfeat_ros.nodes.tf import (
     TF_QOS,
     TF_STATIC_PUB_QOS,
@@ -83,18 +87,18 @@ from semfeat_ros.runtime import ChangeGate, RateLimit, StampGuard
 class MappingNodeConfig:
     """Parameters of mapping_node (shipped as config/mapping_node.yaml)."""
 
-    tracks_topic: str = param('/semfeat/tracks', 'Input tracks (matcher_node output)',
+    tracks_topic: str = param('semfeat/tracks', 'Input tracks (matcher_node output)',
                               read_only=True)
-    camera_info_topic: str = param('/camera/front/camera_info', 'CameraInfo topic',
+    camera_info_topic: str = param('camera/front/camera_info', 'CameraInfo topic',
                                    read_only=True)
-    odom_topic: str = param('/vehicle/odom', 'Wheel odometry (nav_msgs/Odometry)',
+    odom_topic: str = param('vehicle/odom', 'Wheel odometry (nav_msgs/Odometry)',
                             read_only=True)
-    gnss_topic: str = param('/gnss/fix', 'GNSS fixes (sensor_msgs/NavSatFix)', read_only=True)
-    cloud_topic: str = param('/semantic_cloud', 'Labeled map (PointCloud2, latched)',
+    gnss_topic: str = param('gnss/fix', 'GNSS fixes (sensor_msgs/NavSatFix)', read_only=True)
+    cloud_topic: str = param('semantic_cloud', 'Labeled map (PointCloud2, latched)',
                              read_only=True)
-    odometry_topic: str = param('/semfeat/odometry', 'Pose of base_link in map',
+    odometry_topic: str = param('semfeat/odometry', 'Pose of base_link in map',
                                 read_only=True)
-    path_topic: str = param('/semfeat/path', 'Keyframe trajectory', read_only=True)
+    path_topic: str = param('semfeat/path', 'Keyframe trajectory', read_only=True)
     map_frame: str = param('map', 'Frame of the map (z up)', read_only=True)
     odom_frame: str = param('odom', 'Frame of the wheel odometry (REP-105)', read_only=True)
     base_frame: str = param('base_link', 'Vehicle frame', read_only=True)
@@ -111,6 +115,10 @@ class MappingNodeConfig:
                                'shipped config/camera_front.yaml', read_only=True)
     fov_deg: float = param(190.0, 'Field of view of the lens (deg, full cone)',
                            range=(60.0, 240.0), read_only=True)
+    input_reliability: str = param('best_effort', 'QoS reliability of the CameraInfo, odometry '
+                                   'and GNSS inputs: best_effort (sensor data; matches reliable '
+                                   'and best-effort publishers) or reliable',
+                                   choices=('best_effort', 'reliable'), read_only=True)
     use_odometry: bool = param(True, 'Use wheel odometry when it is published', read_only=True)
     use_gnss: bool = param(True, 'Use GNSS fixes (gated on their covariance)', read_only=True)
     odom_calibration: bool = param(
@@ -156,6 +164,13 @@ class MappingNodeConfig:
     output_dir: str = param('semfeat_map', '~/save_map writes cloud.ply, trajectory.tum and '
                             'map.json here (resolved once at start-up; empty = saving off)',
                             read_only=True)
+    input_timeout_s: float = param(
+        5.0, 'An input the node needs (tracks, CameraInfo) silent this long is logged and '
+        'reported as ERROR on /diagnostics (s); 0 = off',
+        range=(0.0, 3600.0), read_only=True)
+    drop_warn_ratio: float = param(0.2, 'Share of the frames received since the previous '
+                                   '/diagnostics report that, dropped, makes it WARN',
+                                   range=(0.0, 1.0), read_only=True)
     diagnostics_period_s: float = param(1.0, 'Period of /diagnostics (s)', range=(0.1, 60.0),
                                         read_only=True)
 
@@ -182,7 +197,8 @@ class MappingNode(Node):
         super().__init__('mapping_node', **kwargs)
         self.conf = c = declare_config(self, MappingNodeConfig)
         guard_updates(self, MappingNodeConfig)
-        self.health = NodeHealth(self)
+        self.health = NodeHealth(self, input_timeout_s=c.input_timeout_s,
+                                 drop_warn_ratio=c.drop_warn_ratio)
         _, extrinsic = load_camera_yaml(c.camera_config or None)
         self.T_base_cam_config = extrinsic.T_base_cam
         self.T_base_cam = self.T_base_cam_config  # of the current session
@@ -207,6 +223,9 @@ class MappingNode(Node):
         self.health.extra.update(resets_camera='0', resets_time='0')
         self._dirty = False
         self.last_result = None
+        self.paused = False  # ~/pause: tracks are counted and ignored until ~/resume
+        self._counts = {'paused': 0, 'service_resets': 0}
+        self.health.extra.update(paused='false', frames_paused='0', resets_service='0')
         self._inbox: deque[tuple[str, Any]] = deque()  # parsed inputs, arrival order
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -214,25 +233,30 @@ class MappingNode(Node):
 
         # odometry and GNSS first: the executor serves ready subscriptions in this order, and a
         # frame waits for the odometry after its stamp (FrameFeeder)
+        io = self.health.io
         if c.use_odometry:
-            self.create_subscription(Odometry, c.odom_topic, self._on_odom, 100)
+            io.subscribe(Odometry, c.odom_topic, self._on_odom,
+                         input_qos(c.input_reliability, 100))
         if c.use_gnss:
-            self.create_subscription(NavSatFix, c.gnss_topic, self._on_gnss, 20)
-        self.create_subscription(CameraInfo, c.camera_info_topic, self._on_camera_info, 10)
-        self.create_subscription(PointCloud2, c.tracks_topic, self._on_tracks, QoSProfile(
-            depth=10, reliability=ReliabilityPolicy.RELIABLE))
+            io.subscribe(NavSatFix, c.gnss_topic, self._on_gnss,
+                         input_qos(c.input_reliability, 20))
+        io.subscribe(CameraInfo, c.camera_info_topic, self._on_camera_info,
+                     input_qos(c.input_reliability), watch='CameraInfo')
+        io.subscribe(PointCloud2, c.tracks_topic, self._on_tracks, input_qos('reliable'),
+                     watch='tracks')
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self.pub_cloud = self.create_publisher(PointCloud2, c.cloud_topic, latched)
-        self.pub_odom = self.create_publisher(Odometry, c.odometry_topic, 10)
-        self.pub_path = self.create_publisher(PathMsg, c.path_topic, latched)
+        self.pub_cloud = io.publish(PointCloud2, c.cloud_topic, latched)
+        self.pub_odom = io.publish(Odometry, c.odometry_topic, 10)
+        self.pub_path = io.publish(PathMsg, c.path_topic, latched)
         if c.publish_tf:
-            self.pub_tf = self.create_publisher(TFMessage, '/tf', TF_QOS)
-            self.pub_tf_static = self.create_publisher(TFMessage, '/tf_static',
-                                                       TF_STATIC_PUB_QOS)
-        self.create_subscription(TFMessage, '/tf_static', self._on_tf_static,
-                                 TF_STATIC_SUB_QOS)
+            self.pub_tf = io.publish(TFMessage, '/tf', TF_QOS)
+            self.pub_tf_static = io.publish(TFMessage, '/tf_static', TF_STATIC_PUB_QOS)
+        io.subscribe(TFMessage, '/tf_static', self._on_tf_static, TF_STATIC_SUB_QOS)
         self.create_service(Trigger, '~/save_map', self._on_save_map)
+        self.create_service(Trigger, '~/reset', self._on_reset)
+        self.create_service(Trigger, '~/pause', self._on_pause)
+        self.create_service(Trigger, '~/resume', self._on_resume)
         self.create_timer(c.cloud_period_s, self._publish_cloud)
         self.create_timer(c.diagnostics_period_s, self._publish_diagnostics)
         self._worker.start()
@@ -287,6 +311,10 @@ class MappingNode(Node):
             self._queue('gnss', fix)
 
     def _on_tracks(self, msg: PointCloud2) -> None:
+        if self.paused:
+            self._counts['paused'] += 1
+            self.health.extra['frames_paused'] = str(self._counts['paused'])
+            return
         self.health.on_input()
         try:
             tr = tracks_from_msg(msg)
@@ -535,6 +563,49 @@ class MappingNode(Node):
         response.success = True
         response.message = (f'wrote {saved.cloud} ({saved.n_points} points), {saved.trajectory} '
                             f'({saved.n_poses} poses) and {saved.manifest}')
+        return response
+
+    def _on_reset(self, request: Trigger.Request, response: Trigger.Response
+                  ) -> Trigger.Response:
+        """Forget the map, the trajectory and the frames waiting for odometry; the next
+        frame starts a new map with the same camera (the map is not saved: ~/save_map first)."""
+        with self._lock:
+            if self.session is None:
+                response.success, response.message = False, 'no map yet (no CameraInfo)'
+                return response
+            n = len(self.session.mapper.trajectory()[0])
+            self.session.reset()
+            self.feeder.reset()
+            self.stamps.reset()
+            self._now_ns = 0
+            self.last_result = None
+            self._dirty = True  # the latched cloud is replaced by the empty map
+        self._counts['service_resets'] += 1
+        self.health.extra['resets_service'] = str(self._counts['service_resets'])
+        response.success, response.message = True, f'map reset ({n} keyframes discarded)'
+        self.get_logger().info(response.message)
+        return response
+
+    def _on_pause(self, request: Trigger.Request, response: Trigger.Response
+                  ) -> Trigger.Response:
+        if self.paused:
+            response.success, response.message = False, 'already paused'
+            return response
+        self.paused = True
+        self.health.extra['paused'] = 'true'
+        response.success = True
+        response.message = ('paused: tracks are ignored (counted as frames_paused) until '
+                            '~/resume; odometry and GNSS are still buffered')
+        return response
+
+    def _on_resume(self, request: Trigger.Request, response: Trigger.Response
+                   ) -> Trigger.Response:
+        if not self.paused:
+            response.success, response.message = False, 'not paused'
+            return response
+        self.paused = False
+        self.health.extra['paused'] = 'false'
+        response.success, response.message = True, 'resumed'
         return response
 
     def _publish_diagnostics(self) -> None:

@@ -21,7 +21,6 @@ from typing import Any
 import numpy as np
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 
 from msg_adapters import (
@@ -38,6 +37,7 @@ from semfeat_ros.matching.errors import MatchingError
 from semfeat_ros.matching.sequential import SequentialMatcher
 from semfeat_ros.nodes.diagnostics import NodeHealth, spin_node, wall_time
 from semfeat_ros.nodes.params import declare_config, guard_updates, param
+from semfeat_ros.nodes.qos import input_qos
 from semfeat_ros.pipeline import frame_features
 from semfeat_ros.runtime import ChangeGate, RateLimit, StampGuard
 
@@ -46,20 +46,22 @@ from semfeat_ros.runtime import ChangeGate, RateLimit, StampGuard
 class MatcherNodeConfig:
     """Parameters of matcher_node (shipped as config/matcher_node.yaml)."""
 
-    features_topic: str = param('/semfeat/features', 'Input features (feature_node output)',
+    features_topic: str = param('semfeat/features', 'Input features (feature_node output)',
                                 read_only=True)
-    camera_info_topic: str = param('/camera/front/camera_info', 'CameraInfo topic',
+    camera_info_topic: str = param('camera/front/camera_info', 'CameraInfo topic',
                                    read_only=True)
-    tracks_topic: str = param('/semfeat/tracks', 'Output PointCloud2 of tracked keypoints',
+    tracks_topic: str = param('semfeat/tracks', 'Output PointCloud2 of tracked keypoints',
                               read_only=True)
-    matches_image_topic: str = param('/semfeat/matches/image', 'Debug view of the matches '
+    matches_image_topic: str = param('semfeat/matches/image', 'Debug view of the matches '
                                      '(drawn only while subscribed)', read_only=True)
-    image_topic: str = param('/camera/front/image_raw', 'Camera images for the debug view '
+    image_topic: str = param('camera/front/image_raw', 'Camera images for the debug view '
                              '(decoded only while the debug view is subscribed)',
                              read_only=True)
     input_transport: str = param('raw', 'Transport of image_topic for the debug view',
                                  choices=('raw', 'compressed'), read_only=True)
-    input_reliability: str = param('reliable', 'QoS reliability of the features input',
+    input_reliability: str = param('reliable', 'QoS reliability of the features input (reliable: '
+                                   "feature_node's output, every frame tracked); CameraInfo and "
+                                   'images are best effort (match any publisher)',
                                    choices=('best_effort', 'reliable'), read_only=True)
     fov_deg: float = param(190.0, 'Field of view of the lens (deg, full cone)',
                            range=(60.0, 240.0))
@@ -90,6 +92,13 @@ class MatcherNodeConfig:
         'clock); a persisting jump waits for it', range=(0.0, 3600.0), read_only=True)
     seed: int = param(0, 'Seed of the RANSAC sampler (deterministic replays)',
                       range=(0, 2**31 - 1), read_only=True)
+    input_timeout_s: float = param(
+        5.0, 'An input the node needs (features, CameraInfo) silent this long is logged and '
+        'reported as ERROR on /diagnostics (s); 0 = off',
+        range=(0.0, 3600.0), read_only=True)
+    drop_warn_ratio: float = param(0.2, 'Share of the frames received since the previous '
+                                   '/diagnostics report that, dropped, makes it WARN',
+                                   range=(0.0, 1.0), read_only=True)
     diagnostics_period_s: float = param(1.0, 'Period of /diagnostics (s)', range=(0.1, 60.0),
                                         read_only=True)
 
@@ -112,7 +121,8 @@ class MatcherNode(Node):
         super().__init__('matcher_node', **kwargs)
         self.conf = c = declare_config(self, MatcherNodeConfig)
         guard_updates(self, MatcherNodeConfig)
-        self.health = NodeHealth(self)
+        self.health = NodeHealth(self, input_timeout_s=c.input_timeout_s,
+                                 drop_warn_ratio=c.drop_warn_ratio)
         self.matcher = SequentialMatcher(matcher_conf(c))
         self.stamps = StampGuard(confirm=c.change_confirm_messages,
                                  limit=RateLimit(c.min_change_interval_s))
@@ -123,17 +133,18 @@ class MatcherNode(Node):
         self.health.extra['resets_time'] = '0'
         self._images: OrderedDict[int, Image | CompressedImage] = OrderedDict()
         self._last_image: np.ndarray | None = None
-        qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE
-                         if c.input_reliability == 'reliable' else ReliabilityPolicy.BEST_EFFORT)
-        self.create_subscription(PointCloud2, c.features_topic, self._on_features, qos)
-        self.create_subscription(CameraInfo, c.camera_info_topic, self._on_camera_info, 10)
+        io = self.health.io
+        io.subscribe(PointCloud2, c.features_topic, self._on_features,
+                     input_qos(c.input_reliability), watch='features')
+        io.subscribe(CameraInfo, c.camera_info_topic, self._on_camera_info, input_qos(),
+                     watch='CameraInfo')
         if c.input_transport == 'raw':
-            self.create_subscription(Image, c.image_topic, self._on_image, 2)
+            io.subscribe(Image, c.image_topic, self._on_image, input_qos(depth=2))
         else:
-            self.create_subscription(CompressedImage, c.image_topic + '/compressed',
-                                     self._on_image, 2)
-        self.pub_tracks = self.create_publisher(PointCloud2, c.tracks_topic, 10)
-        self.pub_debug = self.create_publisher(Image, c.matches_image_topic, 2)
+            io.subscribe(CompressedImage, c.image_topic + '/compressed', self._on_image,
+                         input_qos(depth=2))
+        self.pub_tracks = io.publish(PointCloud2, c.tracks_topic, 10)
+        self.pub_debug = io.publish(Image, c.matches_image_topic, 2)
         self.create_timer(c.diagnostics_period_s, self._publish_diagnostics)
         self.get_logger().info(f'matcher_node ready: {c.features_topic} -> {c.tracks_topic}')
 

@@ -74,7 +74,7 @@ class Pipeline:
         params = {'use_sim_time': 'true' if c.use_sim_time else 'false'}
         if node in ('feature_node', 'matcher_node'):
             params['input_transport'] = c.input_transport
-        if node == 'feature_node':
+        if node in ('feature_node', 'mapping_node'):
             params['input_reliability'] = 'reliable'  # a replayed bag loses nothing at the source
         if node == 'mapping_node':
             params['output_dir'] = str(c.output_dir.resolve())
