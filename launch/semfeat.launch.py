@@ -1,53 +1,67 @@
-"""Start feature_node, matcher_node and mapping_node with the shipped parameter files.
+"""Start feature_node, matcher_node and mapping_node (and RViz) with the shipped parameter files.
 
-    ros2 launch semfeat_ros semfeat.launch.py [image_topic:=...] [camera_info_topic:=...]
-        [input_transport:=raw|compressed] [use_sim_time:=true] [config_dir:=DIR]
+    ros2 launch semfeat_ros semfeat.launch.py [namespace:=car1] [use_sim_time:=true]
+        [image_topic:=...] [camera_info_topic:=...] [odom_topic:=...] [gnss_topic:=...]
+        [input_transport:=raw|compressed] [input_reliability:=best_effort|reliable]
+        [camera_config:=FILE] [output_dir:=DIR] [rviz:=true] [config_dir:=DIR]
 
-Every input and output topic can also be remapped per node with the usual --ros-args rules.
+The nodes' topics are relative names: under ``namespace`` every input and output moves with it
+(``/car1/camera/front/image_raw`` ... ``/car1/semantic_cloud``); /tf, /tf_static and
+/diagnostics stay global. A topic argument that starts with ``/`` is taken as it is.
 """
 from launch.actions import DeclareLaunchArgument
+from launch.conditions import IfCondition
 from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
 from launch_ros.actions import Node
+from launch_ros.parameter_descriptions import ParameterValue
 from launch_ros.substitutions import FindPackageShare
 
 from launch import LaunchDescription
 
 NODES = ('feature_node', 'matcher_node', 'mapping_node')
+# parameters of each node set from launch arguments of the same name
+NODE_ARGS = {
+    'feature_node': ('image_topic', 'camera_info_topic', 'input_transport',
+                     'input_reliability'),
+    'matcher_node': ('image_topic', 'camera_info_topic', 'input_transport'),
+    'mapping_node': ('camera_info_topic', 'odom_topic', 'gnss_topic', 'input_reliability',
+                     'camera_config', 'output_dir'),
+}
+ARGS = (
+    ('namespace', '', 'Namespace of the nodes and their topics'),
+    ('use_sim_time', 'false', 'Use /clock (bag replay)'),
+    ('image_topic', 'camera/front/image_raw', 'Front camera images (raw; +/compressed)'),
+    ('camera_info_topic', 'camera/front/camera_info', 'CameraInfo of the front camera'),
+    ('odom_topic', 'vehicle/odom', 'Wheel odometry (nav_msgs/Odometry)'),
+    ('gnss_topic', 'gnss/fix', 'GNSS fixes (sensor_msgs/NavSatFix)'),
+    ('input_transport', 'raw', 'raw or compressed camera input'),
+    ('input_reliability', 'best_effort', 'QoS reliability of the sensor inputs: best_effort '
+     '(matches any publisher) or reliable (bag replay without drops at the source)'),
+    ('camera_config', '', 'Calibration YAML with the base_link -> camera extrinsic, used when '
+     '/tf_static does not carry it; empty = the shipped config/camera_front.yaml'),
+    ('output_dir', 'semfeat_map', 'Where ~/save_map writes the map'),
+    ('rviz', 'false', 'Start RViz2 with rviz/semfeat.rviz'),
+)
 
 
 def generate_launch_description() -> LaunchDescription:
-    args = [
-        DeclareLaunchArgument('image_topic', default_value='/camera/front/image_raw',
-                              description='Front camera images (raw; +/compressed)'),
-        DeclareLaunchArgument('camera_info_topic', default_value='/camera/front/camera_info',
-                              description='CameraInfo of the front camera'),
-        DeclareLaunchArgument('odom_topic', default_value='/vehicle/odom',
-                              description='Wheel odometry (nav_msgs/Odometry)'),
-        DeclareLaunchArgument('gnss_topic', default_value='/gnss/fix',
-                              description='GNSS fixes (sensor_msgs/NavSatFix)'),
-        DeclareLaunchArgument('input_transport', default_value='raw',
-                              description='raw or compressed camera input'),
-        DeclareLaunchArgument('use_sim_time', default_value='false',
-                              description='Use /clock (bag replay)'),
-        DeclareLaunchArgument('config_dir',
-                              default_value=PathJoinSubstitution(
-                                  [FindPackageShare('semfeat_ros'), 'config']),
-                              description='Directory with <node>.yaml parameter files'),
-    ]
-    remap = [
-        ('/camera/front/image_raw', LaunchConfiguration('image_topic')),
-        ('/camera/front/image_raw/compressed',
-         [LaunchConfiguration('image_topic'), '/compressed']),
-        ('/camera/front/camera_info', LaunchConfiguration('camera_info_topic')),
-        ('/vehicle/odom', LaunchConfiguration('odom_topic')),
-        ('/gnss/fix', LaunchConfiguration('gnss_topic')),
-    ]
+    share = FindPackageShare('semfeat_ros')
+    args = [DeclareLaunchArgument(name, default_value=default, description=text)
+            for name, default, text in ARGS]
+    args.append(DeclareLaunchArgument(
+        'config_dir', default_value=PathJoinSubstitution([share, 'config']),
+        description='Directory with <node>.yaml parameter files'))
     nodes = []
     for name in NODES:
         params = [PathJoinSubstitution([LaunchConfiguration('config_dir'), f'{name}.yaml']),
-                  {'use_sim_time': LaunchConfiguration('use_sim_time')}]
-        if name in ('feature_node', 'matcher_node'):
-            params.append({'input_transport': LaunchConfiguration('input_transport')})
+                  {'use_sim_time': LaunchConfiguration('use_sim_time')},
+                  {arg: ParameterValue(LaunchConfiguration(arg), value_type=str)
+                   for arg in NODE_ARGS[name]}]  # strings as given ('' included)
         nodes.append(Node(package='semfeat_ros', executable=name, name=name, output='screen',
-                          parameters=params, remappings=remap))
+                          namespace=LaunchConfiguration('namespace'), parameters=params))
+    nodes.append(Node(package='rviz2', executable='rviz2', name='rviz2', output='screen',
+                      namespace=LaunchConfiguration('namespace'),
+                      arguments=['-d', PathJoinSubstitution([share, 'rviz', 'semfeat.rviz'])],
+                      parameters=[{'use_sim_time': LaunchConfiguration('use_sim_time')}],
+                      condition=IfCondition(LaunchConfiguration('rviz'))))
     return LaunchDescription(args + nodes)

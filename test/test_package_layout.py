@@ -162,8 +162,10 @@ def _load_launch_file(share: Path) -> list[_Recorder]:
     for mod, names in {
         'launch': ['LaunchDescription'],
         'launch.actions': ['DeclareLaunchArgument'],
+        'launch.conditions': ['IfCondition'],
         'launch.substitutions': ['LaunchConfiguration', 'PathJoinSubstitution'],
         'launch_ros.actions': ['Node'],
+        'launch_ros.parameter_descriptions': ['ParameterValue'],
         'launch_ros.substitutions': ['FindPackageShare'],
     }.items():
         m = types.ModuleType(mod)
@@ -193,9 +195,20 @@ def test_launch_file_names_installed_things(colcon_install: Path) -> None:
     """Every executable and parameter file the launch file names exists in the install."""
     share = colcon_install / PKG / 'share' / PKG
     made = _load_launch_file(share)
-    nodes = [r for r in made if type(r).__name__ == 'Node']
+    nodes = [r for r in made if type(r).__name__ == 'Node' and r.kwargs['package'] == PKG]
     assert sorted(n.kwargs['executable'] for n in nodes) == sorted(NODES)
+    declared = {r.args[0] for r in made if type(r).__name__ == 'DeclareLaunchArgument'}
+    assert {'namespace', 'use_sim_time', 'image_topic', 'camera_info_topic', 'odom_topic',
+            'gnss_topic', 'input_transport', 'input_reliability', 'camera_config', 'output_dir',
+            'rviz'} <= declared
     for node in nodes:
+        assert node.kwargs['namespace'].args == ('namespace',)
+        # every LaunchConfiguration a node reads is a declared argument
+        values = [v for p in node.kwargs['parameters'] if isinstance(p, dict)
+                  for v in p.values()]
+        used = {(v.args[0] if type(v).__name__ == 'ParameterValue' else v).args[0]
+                for v in values}
+        assert used <= declared, used - declared
         assert node.kwargs['package'] == PKG
         assert (colcon_install / PKG / 'lib' / PKG / node.kwargs['executable']).is_file()
         files = [p for p in node.kwargs['parameters'] if type(p).__name__ ==
@@ -209,3 +222,7 @@ def test_launch_file_names_installed_things(colcon_install: Path) -> None:
                       and r.args[0] == 'config_dir')
     default = config_arg.kwargs['default_value'].args[0]
     assert default[0].args == (PKG,) and default[1] == 'config'
+    (rviz,) = [r for r in made if type(r).__name__ == 'Node' and r.kwargs['package'] == 'rviz2']
+    assert rviz.kwargs['condition'].args[0].args == ('rviz',)
+    path = rviz.kwargs['arguments'][1].args[0]
+    assert (share / path[1] / path[2]).is_file()  # rviz/semfeat.rviz installed
