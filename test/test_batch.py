@@ -3,7 +3,8 @@
 One Ray instance serves the module (started by the ``ray_local`` fixture, which only these
 tests request); the Ctrl-C test runs the tool in a subprocess with its own local Ray. The
 recordings are 160x128 px, 1.5 s at 4 Hz (6 frames), and the network runs at resize_max 160
-(a feature_node parameter file written by the test).
+(feature_node and mapping_node parameter files written by the test, with the simulator's
+topic names).
 """
 from __future__ import annotations
 
@@ -15,7 +16,6 @@ import subprocess
 import sys
 import time
 
-from conftest import REPO
 import pytest
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
@@ -31,17 +31,10 @@ BROKEN = 'drive_broken'
 
 @pytest.fixture(scope='module')
 def ray_local() -> object:
-    import ray
-
-    try:
-        ray.init(address='local', num_cpus=2, include_dashboard=False, log_to_driver=False,
-                 configure_logging=False, object_store_memory=batch.LOCAL_OBJECT_STORE,
-                 _node_ip_address='127.0.0.1')
-    except BaseException:
-        ray.shutdown()
-        raise
-    yield ray
-    ray.shutdown()
+    """A local Ray instance of 2 CPUs for the module, started as the tool starts its own; the
+    tool runs on it instead of starting one."""
+    with batch.ray_session(batch.BatchConfig(num_cpus=2)) as cluster:
+        yield cluster
 
 
 @pytest.fixture(scope='module')
@@ -63,16 +56,22 @@ def inputs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     (broken / 'metadata.yaml').write_bytes((src / 'metadata.yaml').read_bytes())
     mcap = next(src.glob('*.mcap'))
     (broken / mcap.name).write_bytes(mcap.read_bytes()[:4000])
-    params = yaml.safe_load((REPO / 'config' / 'feature_node.yaml').read_text())
-    params['feature_node']['ros__parameters']['resize_max'] = 160
+    params = {'image_topic': '/camera/front/image_raw',
+              'camera_info_topic': '/camera/front/camera_info',
+              'features_topic': '/semfeat/features', 'mask_topic': '/semfeat/semantic_mask',
+              'resize_max': 160}  # the other parameters: feature_node's defaults
     conf = root / 'feature_node_small.yaml'
-    conf.write_text(yaml.safe_dump(params))
-    return {'recordings': rec, 'feature_config': conf}
+    conf.write_text(yaml.safe_dump({'feature_node': {'ros__parameters': params}}))
+    mapping = root / 'mapping_node.yaml'
+    mapping.write_text(yaml.safe_dump({'mapping_node': {'ros__parameters': {
+        'odom_topic': '/vehicle/odom', 'gnss_topic': '/gnss/fix'}}}))
+    return {'recordings': rec, 'feature_config': conf, 'mapping_config': mapping}
 
 
 def args(inputs: dict[str, Path], out: Path, *extra: str) -> list[str]:
     return [str(inputs['recordings']), '--out', str(out), '--quiet',
-            '--feature-config', str(inputs['feature_config']), *extra]
+            '--feature-config', str(inputs['feature_config']),
+            '--mapping-config', str(inputs['mapping_config']), *extra]
 
 
 def summary(out: Path) -> tuple[dict, dict[str, dict]]:

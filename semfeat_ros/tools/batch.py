@@ -3,7 +3,8 @@
 usage: semfeat-batch BAG_OR_DIR... --out DIR [--address auto|HOST:PORT|ray://HOST:PORT]
                      [--steps features,map,eval] [--cpus-per-task N] [--memory-per-task-mb M]
                      [--max-retries K] [--num-cpus N] [--frontend semfeat|orb|sift]
-                     [--weights W] [--feature-config Y] [--topic T] [--max-frames N]
+                     [--weights W] [--feature-config Y] [--mapping-config Y] [--topic T]
+                     [--max-frames N]
                      [--no-figures] [--eval-methods M,...] [--eval-stride K]
                      [--eval-max-pairs N] [--quiet]
 
@@ -101,6 +102,7 @@ class BatchConfig:
     frontend: str = 'semfeat'
     weights: str | None = None
     feature_config: Path | None = None
+    mapping_config: Path | None = None
     topic: str | None = None
     max_frames: int | None = None
     figures: bool = True
@@ -149,7 +151,8 @@ class BatchConfig:
         if step == 'map':
             return {**common, 'frontend': self.frontend, 'max_frames': self.max_frames,
                     'figures': self.figures,
-                    'feature_config': _file_identity(self.feature_config)}
+                    'feature_config': _file_identity(self.feature_config),
+                    'mapping_config': _file_identity(self.mapping_config)}
         return {**common, 'methods': list(self.eval_methods), 'stride': self.eval_stride,
                 'max_pairs': self.eval_max_pairs}
 
@@ -432,7 +435,8 @@ def _run_map(job: StepJob, out: Path, feature_yaml: Path) -> dict[str, Any]:
     c = job.conf
     tconf = tool.MapToolConfig(frontend=c.frontend, weights=c.weights, topic=c.topic,
                                max_frames=c.max_frames, feature_config=feature_yaml,
-                               figures=c.figures, progress=False)
+                               mapping_config=c.mapping_config, figures=c.figures,
+                               progress=False)
     m = tool.main(tconf, job.recording.bag, out)
     return {
         'frames_read': m['frames_read'], 'frames_processed': m['frames_processed'],
@@ -446,16 +450,18 @@ def _run_map(job: StepJob, out: Path, feature_yaml: Path) -> dict[str, Any]:
 def _run_eval(job: StepJob, out: Path, feature_yaml: Path) -> dict[str, Any]:
     from semfeat_ros.evaluation import run_sequence as mod
     from semfeat_ros.evaluation.pipeline import EvalConf
+    from semfeat_ros.nodes.feature_node import FeatureNodeConfig
     from semfeat_ros.offline.bag import BagSource
-    from semfeat_ros.offline.config import read_node_params
+    from semfeat_ros.offline.config import node_config, read_node_params
 
     c = job.conf
-    params = read_node_params(feature_yaml, 'feature_node')
+    params = node_config(FeatureNodeConfig, read_node_params(feature_yaml, 'feature_node'),
+                         str(feature_yaml))
     with BagSource(job.recording.bag) as source:
-        image_topic = source.image_topic(c.topic, str(params['image_topic']))
+        image_topic = source.image_topic(c.topic, params.image_topic)
     econf = EvalConf(methods=c.eval_methods, weights=c.weights, progress=False,
-                     network_conf={'num_threads': int(params['num_threads']),
-                                   'resize_max': int(params['resize_max'])})
+                     network_conf={'num_threads': int(params.num_threads),
+                                   'resize_max': int(params.resize_max)})
     topics = mod.SequenceTopics(image=image_topic)
     sconf = mod.SequenceConf(eval=econf, stride=c.eval_stride, max_pairs=c.eval_max_pairs,
                              topics=topics)
@@ -609,24 +615,39 @@ def _end_ray_children() -> None:
             pass
 
 
+#: Starts of a local Ray instance tried: Ray gives its node 30 s to register, which an
+#: overloaded machine can miss once.
+LOCAL_START_ATTEMPTS = 2
+
+
 def _start_ray(conf: BatchConfig) -> None:
-    """``ray.init`` for ``conf``; a local instance whose start failed half-way is stopped,
-    its processes included (``ray.shutdown`` does not know of them then)."""
+    """``ray.init`` for ``conf``. A local instance whose start failed half-way is ended, its
+    processes included (``ray.shutdown`` does not know of them then), and started once more.
+
+    Raises:
+        BatchRayError: Ray could not be started or reached.
+    """
     import ray
 
-    try:
-        if conf.address is None:
-            ray.init(address='local', num_cpus=conf.num_cpus, include_dashboard=False,
-                     log_to_driver=False, configure_logging=False,
-                     object_store_memory=LOCAL_OBJECT_STORE, _node_ip_address='127.0.0.1')
-        else:
-            ray.init(address=conf.address, log_to_driver=False, configure_logging=False)
-    except Exception as exc:  # Ray raises a bare Exception too (node start-up time-out)
-        if conf.address is None:
-            _end_ray_children()
-        ray.shutdown()
-        where = 'a local Ray instance' if conf.address is None else f'Ray at {conf.address}'
-        raise BatchRayError(f'cannot start or reach {where}: {_short(str(exc))}') from exc
+    attempts = LOCAL_START_ATTEMPTS if conf.address is None else 1
+    for attempt in range(1, attempts + 1):
+        try:
+            if conf.address is None:
+                ray.init(address='local', num_cpus=conf.num_cpus, include_dashboard=False,
+                         log_to_driver=False, configure_logging=False,
+                         object_store_memory=LOCAL_OBJECT_STORE, _node_ip_address='127.0.0.1')
+            else:
+                ray.init(address=conf.address, log_to_driver=False, configure_logging=False)
+            return
+        except Exception as exc:  # Ray raises a bare Exception too (node start-up time-out)
+            if conf.address is None:
+                _end_ray_children()
+            ray.shutdown()
+            if attempt == attempts:
+                where = ('a local Ray instance' if conf.address is None
+                         else f'Ray at {conf.address}')
+                raise BatchRayError(f'cannot start or reach {where}: {_short(str(exc))}'
+                                    ) from exc
 
 
 @contextmanager
@@ -910,6 +931,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--feature-config', type=Path, default=None,
                    help='feature_node parameter YAML (default: config/feature_node.yaml); its '
                    "resize_max is also the eval step's network input size")
+    p.add_argument('--mapping-config', type=Path, default=None,
+                   help='map step: mapping_node parameter YAML (default: '
+                   'config/mapping_node.yaml)')
     p.add_argument('--topic', default=None, help="camera topic (default: feature_node's "
                    'image_topic or its /compressed)')
     p.add_argument('--max-frames', type=int, default=None,
@@ -935,7 +959,8 @@ def cli(argv: Sequence[str] | None = None) -> int:
             steps=args.steps, address=args.address, num_cpus=args.num_cpus,
             cpus_per_task=args.cpus_per_task, memory_per_task_mb=args.memory_per_task_mb,
             max_retries=args.max_retries, frontend=args.frontend, weights=args.weights,
-            feature_config=args.feature_config, topic=args.topic, max_frames=args.max_frames,
+            feature_config=args.feature_config, mapping_config=args.mapping_config,
+            topic=args.topic, max_frames=args.max_frames,
             figures=not args.no_figures, eval_methods=args.eval_methods,
             eval_stride=args.eval_stride, eval_max_pairs=args.eval_max_pairs,
             progress=not args.quiet)
