@@ -101,17 +101,21 @@ def with_odometry() -> Run:
     return drive_through(DriveConfig(odometry=True, seed=2))
 
 
-class SingleObservationLandmark(Mapper):
+def single_observation_landmark(mapper: Mapper) -> Mapper:
     """Fault injection: at keyframe 12 one new landmark keeps a single bearing factor, which is
     rank deficient, so gtsam's update raises IndeterminantLinearSystem (a RuntimeError)."""
+    triangulate = mapper.local_mapping.triangulate
 
-    def _triangulate(self, frame, mappable, kid, recs, values, ts):  # noqa: ANN001, ANN202
-        new = super()._triangulate(frame, mappable, kid, recs, values, ts)
+    def faulty(frame, mappable, kid, recs, values, ts):  # noqa: ANN001, ANN202
+        new = triangulate(frame, mappable, kid, recs, values, ts)
         if kid == 12 and new:
             bearings = [r for r in recs if r.lid == new[0] and r.kind == RecordKind.BEARING]
             for rec in bearings[1:]:
                 recs.remove(rec)
         return new
+
+    mapper.local_mapping.triangulate = faulty
+    return mapper
 
 
 class FailingSmoother:
@@ -140,7 +144,7 @@ def with_failures() -> Run:
         made.append(smoother)
         return FailingSmoother(smoother, fail_at=6) if len(made) == 1 else smoother
 
-    mapper = SingleObservationLandmark(CAMERA, T_BASE_CAM, wrap_smoother=first_fails)
+    mapper = single_observation_landmark(Mapper(CAMERA, T_BASE_CAM, wrap_smoother=first_fails))
     conf = DriveConfig(seed=3, outlier_fraction=0.02, bursts={70: 0.4, 71: 0.4, 72: 0.4},
                        drop_frames=frozenset(range(120, 126)))
     return drive_through(conf, mapper)
@@ -408,13 +412,18 @@ def test_invalid_frames_raise_clear_errors(camera_only: Run) -> None:
     assert m.update(g.tracks).state == 'initializing'  # stamps may restart after a reset
 
 
-class RotationAtTheKeyframe(Mapper):
+def rotation_at_the_keyframe(mapper: Mapper) -> Mapper:
     """The keyframe rotation verified and added in the keyframe's own update (the mapper
     leaves it for the next frame and the next keyframe's update)."""
+    local = mapper.local_mapping
+    queue = local.queue_rotation
 
-    def _queue_rotation(self, frame, mappable, ka, kb, recs):  # noqa: ANN001, ANN202
-        super()._queue_rotation(frame, mappable, ka, kb, recs)
-        self._run_rotation_job(recs.append)
+    def at_once(frame, mappable, ka, kb, recs):  # noqa: ANN001, ANN202
+        queue(frame, mappable, ka, kb, recs)
+        local.run_rotation_job(recs.append)
+
+    local.queue_rotation = at_once
+    return mapper
 
 
 def test_keyframe_rotations_from_far_tracks_bound_heading_drift() -> None:
@@ -425,10 +434,12 @@ def test_keyframe_rotations_from_far_tracks_bound_heading_drift() -> None:
     # the smoothed pose (measured: ATE 0.132 -> 0.068 m)
     conf = DriveConfig(seed=3, odometry=True, odom_sigma_yaw=0.01)
     ates = {}
-    for name, sigma, cls in (('none', 0.0, Mapper), ('at keyframe', 0.1, RotationAtTheKeyframe),
-                             ('next keyframe', 0.1, Mapper)):
-        mapper = cls(CAMERA, T_BASE_CAM, {**SYNTHETIC, 'vision_rotation_sigma_deg': sigma,
-                                          'lm_max_depth_m': 2.0})
+    for name, sigma, at_once in (('none', 0.0, False), ('at keyframe', 0.1, True),
+                                 ('next keyframe', 0.1, False)):
+        mapper = Mapper(CAMERA, T_BASE_CAM, {**SYNTHETIC, 'vision_rotation_sigma_deg': sigma,
+                                             'lm_max_depth_m': 2.0})
+        if at_once:
+            rotation_at_the_keyframe(mapper)
         run = drive_through(conf, mapper)
         assert (mapper.stats['rotation_factors'] > 0) == (sigma > 0)
         ates[name] = ate_rmse(*run.trajectory(), align=True)
@@ -445,16 +456,16 @@ def test_keyframe_work_left_to_the_next_frame() -> None:
     for frame in drive.frames():
         n0 = m.stats['rotation_factors']
         r = m.update(frame.tracks, frame.odometry, frame.gnss)
-        assert (m._checks_due is not None) == r.keyframe
+        assert m.outliers.checks_pending == r.keyframe
         grown = m.stats['rotation_factors'] - n0
         grew_after += grown if was_kf else 0
         grew_elsewhere += 0 if was_kf else grown
         keyframes += r.keyframe
         was_kf = r.keyframe
     assert grew_elsewhere == 0 and grew_after >= 0.9 * (keyframes - 2)
-    assert was_kf or m._checks_due is None
+    assert was_kf or not m.outliers.checks_pending
     m.cloud()
-    assert m._checks_due is None and m._rot_job is None
+    assert not m.outliers.checks_pending and not m.local_mapping.rotation_pending
 
 
 def test_keyframe_rotations_with_the_vehicles_motion_and_predictions_from_the_map() -> None:
@@ -471,7 +482,7 @@ def test_keyframe_rotations_with_the_vehicles_motion_and_predictions_from_the_ma
         mapper = Mapper(CAMERA, T_BASE_CAM, {**SYNTHETIC, 'vision_rotation_sigma_deg': 0.1,
                                              'lm_max_depth_m': 2.0,
                                              'vision_rotation_kinematic': kinematic})
-        add = mapper._rotation_rec
+        add = mapper.local_mapping.rotation_record
 
         def spy(ka, kb, ba, bb, add=add, mapper=mapper):  # noqa: ANN001, ANN202
             T_ab = np.linalg.inv(mapper.st.kf_T_wc[ka] @ mapper.T_cb) @ (
@@ -479,7 +490,7 @@ def test_keyframe_rotations_with_the_vehicles_motion_and_predictions_from_the_ma
             dists.append(float(np.linalg.norm(T_ab[:3, 3])))
             return add(ka, kb, ba, bb)
 
-        mapper._rotation_rec = spy
+        mapper.local_mapping.rotation_record = spy
         run = drive_through(conf, mapper)
         est, gt = run.trajectory()
         ates[kinematic] = ate_rmse(est, gt, align=True)
@@ -567,7 +578,7 @@ def test_level_prior_decides_on_estimates_not_on_the_new_keyframes_prediction() 
             m.st.kf_T_wc.append(base_pose(pitch))
             m.st.kfs[kid] = Keyframe(kid, kid, 100)
         recs: list = []
-        m._add_level_rec(len(pitches) - 1, recs)
+        m.local_mapping.add_level_record(len(pitches) - 1, recs)
         return sum(r.kind == RecordKind.LEVEL for r in recs)
 
     delay = Mapper(CAMERA, T_BASE_CAM, SYNTHETIC).conf['level_delay_keyframes']
@@ -588,7 +599,7 @@ def test_landmark_floor_is_its_storey_and_the_observers_decide_at_a_slab() -> No
 
     def level(z: float, kids: list[int], label: str = 'road') -> float:
         lm = Landmark(0, 0, LABELS.id_of(label), False, np.array([0.0, 0.0, z]), kf_ids=kids)
-        return m._floor_alt(lm, lm.xyz, levels)
+        return m.landmark_map.level_altitude(lm, lm.xyz, levels)
 
     assert level(0.1, [2, 3]) == 0.0  # the street seen over the deck's railing
     assert level(1.5, [2, 3]) == 0.0  # a tree top seen from the deck
@@ -606,7 +617,7 @@ def test_landmark_floor_is_its_storey_and_the_observers_decide_at_a_slab() -> No
     m2 = Mapper(CAMERA, T_BASE_CAM, {**SYNTHETIC, 'ceiling_labels': []})
     m2.st.kf_alt = m.st.kf_alt
     lm = Landmark(0, 0, LABELS.id_of('ceiling'), False, np.array([0.0, 0.0, 4.8]), kf_ids=[0])
-    assert m2._floor_alt(lm, lm.xyz, levels) == 3.6
+    assert m2.landmark_map.level_altitude(lm, lm.xyz, levels) == 3.6
     with pytest.raises(MapperConfigError, match='ceiling_labels'):
         Mapper(CAMERA, T_BASE_CAM, {**SYNTHETIC, 'ceiling_labels': ['no_such_class']})
 
@@ -658,7 +669,7 @@ def test_landmark_receding_along_its_rays_is_killed_before_the_solver_fails() ->
     p = est.atPoint3(L(lid))
     est.update(L(lid), c + (p - c) / np.linalg.norm(p - c) * 1000.0)
     killed = mapper.stats['landmarks_killed']
-    mapper._check_depths(est)
+    mapper.outliers.check_depths(est)
     assert mapper.stats['landmarks_lost_depth'] == 1
     assert mapper.stats['landmarks_killed'] == killed + 1
     assert not lm.alive and all(mapper.st.lms[j].alive for j in live[1:])
@@ -678,7 +689,7 @@ def test_rebuild_keeps_what_the_smoother_marginalised() -> None:
             if f >= 220:
                 break
         # GNSS ended 100 frames ago: only the marginal factors still carry its heading
-        assert mapper.gnss_aligned and not mapper._gnss_kids & set(mapper.st.kfs)
+        assert mapper.gnss_aligned and not mapper.gnss.anchored_keyframes & set(mapper.st.kfs)
         k0 = X(min(mapper.st.kfs))
         backend = mapper.backend
         ref = np.sqrt(np.diag(backend.marginal_covariance(k0)))

@@ -30,7 +30,9 @@ ground-class landmarks lying ``camera_height_m`` below the camera on the local g
 The map frame is the first base pose (level start), or ENU once GNSS fixes aligned it.
 Only classes that are ``static`` and not ``dynamic`` in labels.yaml become landmarks; every
 landmark carries a floor (level) index and landmarks of different floors never share a voxel.
-gtsam is imported only inside this package (``mapper`` and ``factors``).
+The mapper's parts: ``state`` (records), ``tracking``, ``keyframes`` (policy), ``initialisation``,
+``local_mapping``, ``gnss``, ``outliers``, ``backend`` (the only owner of the smoother) and
+``landmark_map``. gtsam is imported only inside this package.
 """
 from __future__ import annotations
 

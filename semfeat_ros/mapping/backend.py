@@ -20,7 +20,7 @@ import numpy as np
 
 from semfeat_ros.mapping import factors as fac
 from semfeat_ros.mapping.errors import MapperConfigError
-from semfeat_ros.mapping.state import FactorRecord, MapperSetup, MapState, RecordKind
+from semfeat_ros.mapping.state import FactorRecord, Landmark, MapperSetup, MapState, RecordKind
 
 # What gtsam raises from a failed update: IndeterminantLinearSystem and cheirality/other C++
 # exceptions arrive as RuntimeError, std::out_of_range as IndexError, invalid_argument as
@@ -45,8 +45,8 @@ class Smoother(Protocol):
     def getFactors(self) -> gtsam.NonlinearFactorGraph: ...  # noqa: D102, N802
 
 
-#: Called with a landmark leaving the window (id, final position (m)).
-FinalizeLandmark = Callable[[int, np.ndarray], None]
+#: Called with a landmark leaving the window and its final position (m).
+FinalizeLandmark = Callable[[Landmark, np.ndarray], None]
 #: Called when the window cannot be kept: (stamp ns, predicted camera pose or None, events).
 LoseTracking = Callable[[int, 'np.ndarray | None', list[str]], None]
 
@@ -202,7 +202,7 @@ class Backend:
         """Last resort: a fresh window holding only keyframe ``kid`` (the map so far is kept)."""
         events.append('window_reset')
         for lid in list(self.st.lms):
-            self._finalize(lid, self.st.lms[lid].xyz)
+            self._finalize_landmark(lid, self.st.lms[lid].xyz)
         for k in list(self.st.kfs):
             if k != kid:
                 del self.st.kfs[k]
@@ -240,6 +240,20 @@ class Backend:
             if chr(gtsam.Symbol(k).chr()) == 'x':
                 out.insert(k, values.atPose3(k))
         return out
+
+    def _finalize_landmark(self, lid: int, xyz: np.ndarray) -> None:
+        """Landmark ``lid`` leaves the window at ``xyz`` (m): its factors are forgotten, its
+        track keeps the position (tracking against it goes on), then ``finalize``."""
+        lm = self.st.lms.pop(lid)
+        self.st.lm_by_ts.get(lm.last_kf, set()).discard(lid)
+        for rid in lm.rids:
+            self.drop(rid)
+        tr = self.st.tracks.get(lm.track)
+        if tr is not None and lm.alive:
+            tr.frozen = np.array(xyz)
+        if self.setup.conf['keep_full_graph']:
+            self.st.final_xyz[lid] = np.array(xyz)
+        self._finalize(lm, xyz)
 
     def forget_landmark(self, lid: int) -> None:
         """Remove landmark ``lid`` from the window with its factors, as if never made (its
@@ -408,7 +422,7 @@ class Backend:
                 if not est.exists(L(lid)):
                     lm = self.st.lms[lid]
                     xyz = old.atPoint3(L(lid)) if old.exists(L(lid)) else lm.xyz
-                    self._finalize(lid, xyz)
+                    self._finalize_landmark(lid, xyz)
             if not self.st.lm_by_ts.get(t):
                 self.st.lm_by_ts.pop(t, None)
         for lid in lids:

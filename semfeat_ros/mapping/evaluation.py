@@ -20,13 +20,6 @@ class Similarity:
         """Transform points (N, 3) m."""
         return self.s * np.asarray(points, dtype=np.float64) @ self.R.T + self.t
 
-    def apply_poses(self, poses: np.ndarray) -> np.ndarray:
-        """Transform 4x4 poses (N, 4, 4): rotate, scale and shift their positions."""
-        out = np.array(poses, dtype=np.float64).reshape(-1, 4, 4)
-        out[:, :3, :3] = self.R @ out[:, :3, :3]
-        out[:, :3, 3] = self.apply(out[:, :3, 3])
-        return out
-
 
 def _positions(x: np.ndarray, name: str) -> np.ndarray:
     a = np.asarray(x, dtype=np.float64)

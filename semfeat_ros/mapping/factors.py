@@ -1,4 +1,4 @@
-"""GTSAM factors of the mapper (the only place, with :mod:`mapper`, that builds gtsam objects).
+"""GTSAM factors of the mapper (every factor the mapper's parts put in the graph).
 
 Pose variables ``X(k)`` are camera (optical frame) poses in ``map``; landmark variables ``L(j)``
 are points in ``map`` (m). Bearing factors (``gtsam.BearingFactor3D``) compare unit bearings on

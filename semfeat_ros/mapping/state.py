@@ -236,8 +236,17 @@ class MapState:
         self.all_recs: list[FactorRecord] = []  # every record made (keep_full_graph)
         self.final_xyz: dict[int, np.ndarray] = {}  # marginalised landmarks (keep_full_graph)
         self.history: list[tuple[int, np.ndarray]] = []  # (stamp, T_wc) of the last frames
+        self.kf_odom = OdomChain(False)  # odometry since the last keyframe
+        self.ref_odom = OdomChain(False)  # odometry since the two-view reference frame
         self.link: dict[str, Any] | None = None  # where tracking was lost (kid, stamp, T_wc, xi)
         self.stats: dict[str, int] = dict.fromkeys(STATS_KEYS, 0)
+
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+        """Keyframe trajectory: ``(stamps_ns (K,) int64, T_map_base (K, 4, 4))`` (m)."""
+        stamps = np.array(self.kf_stamps, dtype=np.int64)
+        if not self.kf_T_wc:
+            return stamps, np.zeros((0, 4, 4))
+        return stamps, np.array(self.kf_T_wc) @ self.setup.T_cb
 
     def record(self, factor: Any, kind: RecordKind, kid: int = -1, lid: int = -1,
                bearing: np.ndarray | None = None, pixel: np.ndarray | None = None
