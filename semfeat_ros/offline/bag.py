@@ -70,6 +70,12 @@ def resolve_bag_path(path: str | os.PathLike[str]) -> Path:
     return bag
 
 
+def absolute_topic(topic: str) -> str:
+    """A topic name as recorded in a bag: relative names (the nodes' parameters) resolve in the
+    root namespace, as for nodes started without one (``'camera/info'`` -> ``'/camera/info'``)."""
+    return topic if topic.startswith('/') else '/' + topic
+
+
 @dataclass(frozen=True)
 class BagMessage:
     """One deserialised message: ``topic``, recording time ``log_ns`` (ns), ``msgtype``,
@@ -115,11 +121,12 @@ class BagSource:
 
     def has(self, topic: str, msgtypes: Sequence[str] | None = None) -> bool:
         """True when ``topic`` is in the bag (with one of ``msgtypes`` if given)."""
+        topic = absolute_topic(topic)
         return topic in self.topics and (msgtypes is None or self.topics[topic] in msgtypes)
 
     def message_count(self, topic: str) -> int:
         """Messages recorded on ``topic`` (0 when absent)."""
-        return self._counts.get(topic, 0)
+        return self._counts.get(absolute_topic(topic), 0)
 
     def describe_topics(self, msgtypes: Sequence[str] | None = None) -> str:
         """``'topic (type), ...'`` of the bag's topics (of ``msgtypes`` only, if given)."""
@@ -130,6 +137,7 @@ class BagSource:
     def require(self, topic: str, msgtypes: Sequence[str], what: str) -> str:
         """The message type of ``topic``; raises :class:`TopicNotFoundError` when it is missing,
         empty or of another type (``what`` names the role, e.g. ``'camera images'``)."""
+        topic = absolute_topic(topic)
         if topic not in self.topics:
             raise TopicNotFoundError(
                 f'bag {str(self.path)!r} has no topic {topic!r} ({what}); topics of the '
@@ -147,7 +155,8 @@ class BagSource:
         ``default`` (raw ``Image``) or ``default + '/compressed'`` whichever the bag has."""
         if topic:
             self.require(topic, IMAGE_TYPES, 'camera images')
-            return topic
+            return absolute_topic(topic)
+        default = absolute_topic(default)
         for cand in (default, default.rstrip('/') + '/compressed'):
             if self.has(cand, IMAGE_TYPES) and self.message_count(cand):
                 return cand
@@ -169,7 +178,7 @@ class BagSource:
         Raises:
             BagFormatError: the storage is corrupt part-way, or a message cannot be decoded.
         """
-        wanted = set(topics)
+        wanted = {absolute_topic(t) for t in topics}
         conns = [c for c in self._reader.connections if c.topic in wanted]
         if not conns:
             return

@@ -14,6 +14,7 @@ store a frame's CameraInfo just after the image).
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 import os
 from pathlib import Path
@@ -27,7 +28,13 @@ from tqdm import tqdm
 from msg_adapters import features_to_msg, numpy_to_image, stamp_to_ns, to_rgb_or_mono
 from msg_adapters.errors import MessageError
 from semfeat_ros.frontend import FrontendError
-from semfeat_ros.offline.bag import CAMERA_INFO_TYPE, POINTCLOUD2_TYPE, BagSource, one_line
+from semfeat_ros.offline.bag import (
+    CAMERA_INFO_TYPE,
+    POINTCLOUD2_TYPE,
+    BagSource,
+    absolute_topic,
+    one_line,
+)
 from semfeat_ros.offline.errors import NoFramesError, OutputPathError
 from semfeat_ros.offline.frontends import NetworkFrontend
 from semfeat_ros.offline.mapping_run import CameraTimeline, read_cameras
@@ -49,6 +56,14 @@ class FeaturesBagConfig:
     fov_deg: float = 190.0
     max_image_pixels: int = 50_000_000
     max_frames: int | None = None
+
+    def absolute(self) -> FeaturesBagConfig:
+        """The same with topic names as recorded in a bag (relative ones resolved in the root
+        namespace, as for nodes started without one)."""
+        names = ('image_topic', 'default_image_topic', 'camera_info_topic', 'features_topic',
+                 'mask_topic')
+        return dataclasses.replace(self, **{k: absolute_topic(getattr(self, k))
+                                            for k in names if getattr(self, k) is not None})
 
 
 @dataclass
@@ -88,6 +103,7 @@ def write_features_bag(source: BagSource, out: str | os.PathLike[str],
         BagFormatError: the input bag is broken part-way.
     """
     t0 = time.perf_counter()
+    conf = conf.absolute()
     out_path = check_new_output(out)
     image_topic = source.image_topic(conf.image_topic, conf.default_image_topic)
     cameras: CameraTimeline | None = None

@@ -23,6 +23,7 @@ from __future__ import annotations
 from bisect import bisect_right
 from collections import deque
 from collections.abc import Callable
+import dataclasses
 from dataclasses import dataclass, field
 import time
 from typing import Any
@@ -53,6 +54,7 @@ from semfeat_ros.offline.bag import (
     ODOMETRY_TYPE,
     POINTCLOUD2_TYPE,
     BagSource,
+    absolute_topic,
 )
 from semfeat_ros.offline.errors import BagFormatError, OfflineConfigError, TopicNotFoundError
 from semfeat_ros.offline.frontends import (
@@ -77,6 +79,11 @@ class Topics:
     ground_truth: str = '/ground_truth/pose'
     gt_semantic: str = '/ground_truth/semantic'
     gt_depth: str = '/ground_truth/depth'
+
+    def absolute(self) -> Topics:
+        """The names as recorded in a bag (relative ones resolved in the root namespace)."""
+        return Topics(**{k: v if v is None else absolute_topic(v)
+                         for k, v in dataclasses.asdict(self).items()})
 
 
 @dataclass
@@ -208,7 +215,7 @@ def run_mapping(source: BagSource, conf: MapConfig, progress: bool = True,
         semfeat_ros.model.errors.WeightsNotFoundError: the network has no trained weights.
     """
     t_start = time.perf_counter()
-    topics = conf.topics
+    topics = conf.topics.absolute()
     if conf.labels not in LABEL_SOURCES:
         raise OfflineConfigError(f'labels: expected one of {LABEL_SOURCES}, got {conf.labels!r}')
     if conf.frontend not in ('semfeat', *OPENCV_KINDS):
