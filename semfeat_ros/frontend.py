@@ -30,7 +30,7 @@ class FrontendConfig:
     weights: str | None = None  # None: the shipped weights
     num_threads: int = 2  # network intra-op threads (torch or onnxruntime)
     max_keypoints: int = 1000  # top-k by score
-    score_threshold: float = 0.05  # minimum heatmap score
+    score_threshold: float = 0.15  # minimum heatmap score (config/model.yaml)
     nms_radius: int = 3  # px at network resolution
     border: int = 4  # px at network resolution, from the image and image-circle border
     drop_classes: tuple[str, ...] = ('sky', 'car', 'pedestrian')  # keypoints never returned

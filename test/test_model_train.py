@@ -302,14 +302,15 @@ def test_shipped_config_files_match_the_code() -> None:
     assert shipped.conf['seg_context_blocks'] == 2 and shipped.conf['seg_blocks'] == 0
     assert stage2['train_only'] == stage3['train_only']
     stage4 = load_train_conf(read_config(REPO / 'config' / 'finetune_kp.yaml'))
-    assert stage4['network'] == shipped.conf  # stage 4: the shipped weights (v9)
+    assert stage4['network'] == shipped.conf  # stage 4: the keypoint refinement
     assert shipped.conf['kp_refine_channels'] == 8
-    assert meta['training']['init_weights'] == stage4['init_weights'] == \
-        stage3['init_weights'].replace('train_v5', 'train_v8')
-    assert meta['training']['train_only'] == stage4['train_only']
+    assert stage4['init_weights'] == stage3['init_weights'].replace('train_v5', 'train_v8')
     assert stage4['data'] == conf['data']  # stage 1's views and photos
     stage5 = load_train_conf(read_config(REPO / 'config' / 'distill.yaml'))
-    assert stage5['network'] == shipped.conf and stage5['teacher'] == 'xfeat'
+    assert stage5['network'] == shipped.conf and stage5['teacher'] == 'xfeat'  # shipped
+    assert meta['training']['init_weights'] == stage5['init_weights']
+    assert meta['training']['train_only'] == stage5['train_only']
+    assert meta['training']['teacher'] == 'xfeat'
     assert stage5['train_only'] == [] and stage5['warmup_fraction'] == 0.0  # the whole network
     assert stage5['init_weights'] == stage4['init_weights'].replace('train_v8', 'train_v9')
     assert stage5['loss']['distill_desc_weight'] > 0 and stage5['data']['photo_score'] == 'aliked'

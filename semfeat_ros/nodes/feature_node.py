@@ -73,7 +73,7 @@ class FeatureNodeConfig:
                          choices=('auto', 'onnxruntime', 'torch'), read_only=True)
     max_keypoints: int = param(1000, 'Keypoints kept per frame (top-k by score)',
                                range=(16, 8192), read_only=True)
-    score_threshold: float = param(0.05, 'Minimum heatmap score of a keypoint',
+    score_threshold: float = param(0.15, 'Minimum heatmap score of a keypoint',
                                    range=(0.0, 1.0), read_only=True)
     nms_radius: int = param(3, 'Non-maximum suppression radius (network px)', range=(0, 16),
                             read_only=True)
