@@ -179,3 +179,31 @@ def test_bad_input_and_missing_camera_info(harness: Harness) -> None:
     h.send(20, kp2, d2)
     assert h.wait(lambda: len(h.tracks) == 2)
     assert len(tracks_from_msg(h.tracks[-1]).track_ids) > 100
+
+
+@pytest.mark.ros_domain(79)
+def test_runtime_parameter_updates(isolated_ros) -> None:
+    """Thresholds the matcher reads per frame change at run time; a read-only parameter or an
+    out-of-range value is refused with its reason and changes nothing."""
+    from rclpy.parameter import Parameter
+
+    from semfeat_ros.nodes.matcher_node import MatcherNode
+
+    rclpy.init()
+    node = None
+    try:
+        node = MatcherNode()
+        conf = node.matcher.conf
+        (ok,) = node.set_parameters([Parameter('ratio_threshold', value=0.8)])
+        assert ok.successful and conf['matching']['ratio_threshold'] == 0.8
+        (ok,) = node.set_parameters([Parameter('min_inliers', value=20)])
+        assert ok.successful and conf['verification']['min_inliers'] == 20
+        (bad,) = node.set_parameters([Parameter('min_inliers', value=2)])
+        assert not bad.successful and 'out of range' in bad.reason
+        (bad,) = node.set_parameters([Parameter('seed', value=5)])
+        assert not bad.successful and 'read-only' in bad.reason
+        assert conf['verification']['min_inliers'] == 20 and conf['verification']['seed'] == 0
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()

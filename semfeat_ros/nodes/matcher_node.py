@@ -65,18 +65,19 @@ class MatcherNodeConfig:
                                    choices=('best_effort', 'reliable'), read_only=True)
     fov_deg: float = param(190.0, 'Field of view of the lens (deg, full cone)',
                            range=(60.0, 240.0))
-    ratio_threshold: float = param(0.9, 'Lowe ratio test (best <= ratio * second best)',
-                                   range=(0.0, 1.0), read_only=True)
-    min_similarity: float = param(0.5, 'Minimum cosine similarity of a match',
-                                  range=(-1.0, 1.0), read_only=True)
+    ratio_threshold: float = param(0.9, 'Lowe ratio test (best <= ratio * second best); '
+                                   'may change at run time', range=(0.0, 1.0))
+    min_similarity: float = param(0.5, 'Minimum cosine similarity of a match; may change at '
+                                  'run time', range=(-1.0, 1.0))
     max_displacement: float = param(
         0.15, 'Largest image motion of a match per frame, as a fraction of the image width '
-        '(0 disables the gate)', range=(0.0, 2.0), read_only=True)
+        '(0 disables the gate); may change at run time', range=(0.0, 2.0))
     semantic: bool = param(True, 'Match only keypoints of compatible classes', read_only=True)
     threshold_rad: float = param(0.01, 'RANSAC inlier threshold: angle between a bearing and '
-                                 'its epipolar plane (rad)', range=(1e-4, 0.2), read_only=True)
-    min_inliers: int = param(12, 'Fewer verified matches fail the frame', range=(5, 10000),
-                             read_only=True)
+                                 'its epipolar plane (rad); may change at run time',
+                                 range=(1e-4, 0.2))
+    min_inliers: int = param(12, 'Fewer verified matches fail the frame; may change at run '
+                             'time', range=(5, 10000))
     max_missed: int = param(2, 'A track ends after this many frames without a match',
                             range=(0, 100), read_only=True)
     reacquire_window: int = param(2, 'Frames whose lost tracks are searched again',
@@ -101,6 +102,16 @@ class MatcherNodeConfig:
                                    range=(0.0, 1.0), read_only=True)
     diagnostics_period_s: float = param(1.0, 'Period of /diagnostics (s)', range=(0.1, 60.0),
                                         read_only=True)
+
+
+# parameters the matcher reads anew for every frame: (section, key) of its conf
+RUNTIME_PARAMS = {
+    'ratio_threshold': ('matching', 'ratio_threshold'),
+    'min_similarity': ('matching', 'min_similarity'),
+    'max_displacement': ('matching', 'max_displacement'),
+    'threshold_rad': ('verification', 'threshold_rad'),
+    'min_inliers': ('verification', 'min_inliers'),
+}
 
 
 def matcher_conf(c: MatcherNodeConfig) -> dict[str, Any]:
@@ -146,7 +157,18 @@ class MatcherNode(Node):
         self.pub_tracks = io.publish(PointCloud2, c.tracks_topic, 10)
         self.pub_debug = io.publish(Image, c.matches_image_topic, 2)
         self.create_timer(c.diagnostics_period_s, self._publish_diagnostics)
+        self.add_post_set_parameters_callback(self._apply_parameters)
         self.get_logger().info(f'matcher_node ready: {c.features_topic} -> {c.tracks_topic}')
+
+    def _apply_parameters(self, params: list[Any]) -> None:
+        """Accepted run-time changes (ranges checked, read-only ones refused before) take
+        effect from the next frame; this runs on the executor, between frames."""
+        for p in params:
+            where = RUNTIME_PARAMS.get(p.name)
+            if where is not None:
+                section, key = where
+                self.matcher.conf[section][key] = p.value
+                self.get_logger().info(f'{p.name} = {p.value}')
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
         try:
