@@ -631,21 +631,22 @@ def read_replay(bag: Path, mc: Any) -> Replay:
     from semfeat_ros.offline.bag import NAVSATFIX_TYPE, ODOMETRY_TYPE
     from semfeat_ros.offline.mapping_run import read_cameras
 
+    names = mc.topics.absolute()  # as recorded in the bag
     with BagSource(bag) as source:
-        image_topic = source.image_topic(mc.topics.image, mc.topics.image_default)
-        cameras = read_cameras(source, mc.topics.camera_info, mc.fov_deg)
+        image_topic = source.image_topic(names.image, names.image_default)
+        cameras = read_cameras(source, names.camera_info, mc.fov_deg)
         topics = [image_topic]
-        if mc.use_odometry and source.has(mc.topics.odometry, (ODOMETRY_TYPE,)):
-            topics.append(mc.topics.odometry)
-        if mc.use_gnss and source.has(mc.topics.gnss, (NAVSATFIX_TYPE,)):
-            topics.append(mc.topics.gnss)
+        if mc.use_odometry and source.has(names.odometry, (ODOMETRY_TYPE,)):
+            topics.append(names.odometry)
+        if mc.use_gnss and source.has(names.gnss, (NAVSATFIX_TYPE,)):
+            topics.append(names.gnss)
         events = []
         for m in source.messages(topics):
             try:
                 if m.topic == image_topic:
                     s = stamp_to_ns(m.msg)
                     events.append(_Event(s + IMAGE_DELAY_NS, 2, 'image', s, m.msg))
-                elif m.topic == mc.topics.odometry:
+                elif m.topic == names.odometry:
                     od = odometry_to_numpy(m.msg)
                     events.append(_Event(od.stamp_ns, 0, 'odom', od.stamp_ns, od.T))
                 else:
