@@ -134,12 +134,6 @@ def guard_updates(node: Node, cls: type) -> None:
     node.add_on_set_parameters_callback(on_set)
 
 
-def root_topic(name: str) -> str:
-    """A node's topic parameter resolved in the root namespace, as a bag names its topics
-    (``camera/front/image_raw`` -> ``/camera/front/image_raw``; absolute names unchanged)."""
-    return name if name.startswith('/') else '/' + name
-
-
 def to_yaml_dict(node_name: str, cls: type) -> dict:
     """The ``config/<node>.yaml`` content for a config dataclass's defaults."""
     return {node_name: {'ros__parameters': {i.name: i.default for i in describe(cls)}}}

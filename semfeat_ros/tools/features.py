@@ -47,7 +47,6 @@ class FeaturesToolConfig:
 def main(conf: FeaturesToolConfig, bag: Path, out: Path) -> dict:
     """Write the features bag ``out`` for ``bag``; returns the summary (counts, timing)."""
     from semfeat_ros.nodes.feature_node import FeatureNodeConfig
-    from semfeat_ros.nodes.params import root_topic
     from semfeat_ros.paths import config_path
 
     path = conf.config if conf.config is not None else config_path('feature_node.yaml')
@@ -57,11 +56,9 @@ def main(conf: FeaturesToolConfig, bag: Path, out: Path) -> dict:
     check_new_output(out)
     with BagSource(bag) as source:
         bag_conf = FeaturesBagConfig(
-            image_topic=conf.topic, default_image_topic=root_topic(params.image_topic),
-            camera_info_topic=root_topic(params.camera_info_topic),
-            features_topic=root_topic(params.features_topic),
-            mask_topic=root_topic(params.mask_topic),
-            require_camera_info=params.require_camera_info,
+            image_topic=conf.topic, default_image_topic=params.image_topic,
+            camera_info_topic=params.camera_info_topic, features_topic=params.features_topic,
+            mask_topic=params.mask_topic, require_camera_info=params.require_camera_info,
             fov_deg=params.fov_deg, max_image_pixels=params.max_image_pixels,
             max_frames=conf.max_frames)
         source.image_topic(bag_conf.image_topic, bag_conf.default_image_topic)  # fail early

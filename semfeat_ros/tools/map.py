@@ -80,7 +80,6 @@ def build_map_config(conf: MapToolConfig) -> tuple[MapConfig, list[str]]:
     from semfeat_ros.nodes.mapping_node import MappingNodeConfig, session_conf
     from semfeat_ros.nodes.mapping_node import mapper_conf as mapping_conf
     from semfeat_ros.nodes.matcher_node import MatcherNodeConfig, matcher_conf
-    from semfeat_ros.nodes.params import root_topic
 
     if conf.frontend not in FRONTENDS:
         raise OfflineConfigError(
@@ -119,9 +118,9 @@ def build_map_config(conf: MapToolConfig) -> tuple[MapConfig, list[str]]:
         _, extrinsic = load_camera_yaml(camera_yaml)
     except (OSError, ValueError) as exc:
         raise OfflineConfigError(f'camera calibration: {one_line(exc)}') from exc
-    topics = Topics(image=conf.topic, image_default=root_topic(fparams.image_topic),
-                    camera_info=root_topic(fparams.camera_info_topic),
-                    odometry=root_topic(gparams.odom_topic), gnss=root_topic(gparams.gnss_topic))
+    topics = Topics(image=conf.topic, image_default=fparams.image_topic,
+                    camera_info=fparams.camera_info_topic, odometry=gparams.odom_topic,
+                    gnss=gparams.gnss_topic)
     mc = MapConfig(
         T_base_cam=extrinsic.T_base_cam, frontend=conf.frontend,
         frontend_conf=frontend_config(fparams, conf.weights), labels=conf.labels,
