@@ -563,3 +563,25 @@ def test_topics_and_services_follow_the_namespace(isolated_ros) -> None:
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+
+
+@pytest.mark.ros_domain(90)
+def test_save_on_shutdown(isolated_ros, tmp_path: Path) -> None:
+    h = Harness([Parameter('use_gnss', value=False), Parameter('output_dir', value=str(tmp_path)),
+                 Parameter('save_on_shutdown', value=True)], 'probe_shutdown')
+    node = h.node
+    try:
+        h.start()
+        h.settle_tracks_topic()
+        for f in drive_frames(12):
+            h.send_odom(f, np.eye(6) * 1e-4)
+            h.send_tracks(f)
+            time.sleep(0.02)
+        assert h.wait(lambda: node.health.counters.processed >= 11)
+        assert not (tmp_path / 'map.json').exists()
+        with node._lock:
+            n = len(node.session.mapper.trajectory()[0])
+    finally:
+        h.close()  # destroys the node: the map is saved
+    assert (tmp_path / 'map.json').is_file() and (tmp_path / 'cloud.ply').is_file()
+    assert len(read_tum(tmp_path / 'trajectory.tum')[0]) == n >= 1

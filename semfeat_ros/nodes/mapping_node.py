@@ -4,7 +4,8 @@ Feeds ``/semfeat/tracks`` into the incremental factor-graph mapper (GTSAM fixed-
 bearing factors) together with the optional ``/vehicle/odom`` and ``/gnss/fix``; publishes
 ``/semfeat/odometry`` (map -> base_link, z = altitude) and ``/semfeat/path`` every frame and the
 labeled map ``/semantic_cloud`` (latched, transient_local depth 1) at a bounded rate.
-Services (std_srvs/Trigger): ``~/save_map`` (below), ``~/reset`` (a new, empty map with the same
+Services (std_srvs/Trigger): ``~/save_map`` (below; also on shutdown with
+``save_on_shutdown``), ``~/reset`` (a new, empty map with the same
 camera), ``~/pause`` and ``~/resume`` (tracks ignored and counted in between; odometry and GNSS
 still buffered).
 
@@ -164,6 +165,8 @@ class MappingNodeConfig:
     output_dir: str = param('semfeat_map', '~/save_map writes cloud.ply, trajectory.tum and '
                             'map.json here (resolved once at start-up; empty = saving off)',
                             read_only=True)
+    save_on_shutdown: bool = param(False, 'Save the map into output_dir when the node shuts '
+                                   'down (Ctrl-C, ros2 launch stop)', read_only=True)
     input_timeout_s: float = param(
         5.0, 'An input the node needs (tracks, CameraInfo) silent this long is logged and '
         'reported as ERROR on /diagnostics (s); 0 = off',
@@ -543,27 +546,30 @@ class MappingNode(Node):
 
     def _on_save_map(self, request: Trigger.Request, response: Trigger.Response
                      ) -> Trigger.Response:
+        response.success, response.message = self.save()
+        return response
+
+    def save(self, publish: bool = True) -> tuple[bool, str]:
+        """Write the map into ``output_dir`` (the frames still waiting for their odometry are
+        mapped first, and published when ``publish``); whether it was written and what
+        happened."""
         if self.out_dir is None:
-            response.success, response.message = False, 'saving is off (output_dir is empty)'
-            return response
+            return False, 'saving is off (output_dir is empty)'
         with self._lock:
             if self.session is None:
-                response.success, response.message = False, 'no map yet (no CameraInfo)'
-                return response
+                return False, 'no map yet (no CameraInfo)'
             fed = self._release(None)  # the frames still waiting for their odometry
             cloud = self.session.mapper.cloud()
             stamps, poses = self.session.mapper.trajectory()
             stamp = self.last_result.stamp_ns if self.last_result is not None else 0
-        self._publish_frames(*fed)
+        if publish:
+            self._publish_frames(*fed)
         try:
             saved = save_map(self.out_dir, cloud, stamps, poses, stamp_ns=stamp)
         except MapWriteError as exc:
-            response.success, response.message = False, str(exc)
-            return response
-        response.success = True
-        response.message = (f'wrote {saved.cloud} ({saved.n_points} points), {saved.trajectory} '
-                            f'({saved.n_poses} poses) and {saved.manifest}')
-        return response
+            return False, str(exc)
+        return True, (f'wrote {saved.cloud} ({saved.n_points} points), {saved.trajectory} '
+                      f'({saved.n_poses} poses) and {saved.manifest}')
 
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response
                   ) -> Trigger.Response:
@@ -621,6 +627,10 @@ class MappingNode(Node):
         self._wake.set()
         if self._worker.is_alive():
             self._worker.join(timeout=10.0)
+        if self.conf.save_on_shutdown and self.session is not None:
+            ok, message = self.save(publish=False)  # the context may be shut down (Ctrl-C)
+            log = self.get_logger()
+            (log.info if ok else log.error)(f'save on shutdown: {message}')
         super().destroy_node()
 
 
