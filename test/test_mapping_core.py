@@ -6,6 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from semfeat_ros.camera import rpy_to_matrix
 from semfeat_ros.mapping import (
     AlignmentError,
     GnssFix,
@@ -128,7 +129,7 @@ def test_plane_fit_and_yaw_alignment() -> None:
     assert abs(abs(n[2]) - 1) < 1e-9 and abs(abs(d) - 0.75) < 1e-9
     assert inl[10:].all() and not inl[:10].any()
     src = rng.normal(size=(30, 3)) * 10
-    R = geo.rpy_matrix(0.0, 0.0, 1.1)
+    R = rpy_to_matrix(0.0, 0.0, 1.1)
     dst = 1.5 * src @ R.T + [3.0, -2.0, 1.0]
     s, Rz, t = geo.align_yaw(src, dst, True)
     assert abs(s - 1.5) < 1e-12 and np.allclose(Rz, R) and np.allclose(t, [3.0, -2.0, 1.0])
@@ -379,7 +380,7 @@ def test_vehicle_camera_translation_on_an_arc() -> None:
     th = dist / radius
     T_wb_a = np.eye(4)
     T_wb_b = np.eye(4)
-    T_wb_b[:3, :3] = geo.rpy_matrix(0.0, 0.0, th)
+    T_wb_b[:3, :3] = rpy_to_matrix(0.0, 0.0, th)
     T_wb_b[:3, 3] = [radius * np.sin(th), radius * (1.0 - np.cos(th)), 0.0]
     T_wc_a, T_wc_b = T_wb_a @ T_bc, T_wb_b @ T_bc
     R = T_wc_b[:3, :3].T @ T_wc_a[:3, :3]  # x_b = R x_a + t

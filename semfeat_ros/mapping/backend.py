@@ -68,6 +68,7 @@ class Backend:
         self._lose = lose
         self._wrap = wrap_smoother
         self._recs: dict[int, FactorRecord] = {}  # rid -> record of a factor in the smoother
+        self._records = MappingProxyType(self._recs)
         self._pending_remove: set[int] = set()  # rids removed at the next update
         self._pending_recs: list[FactorRecord] = []  # records added at the next update
         self._smoother = self._new_smoother()
@@ -82,7 +83,7 @@ class Backend:
     @property
     def records(self) -> Mapping[int, FactorRecord]:
         """Read-only view: record id -> record of every factor in the smoother."""
-        return MappingProxyType(self._recs)
+        return self._records
 
     def queue(self, rec: FactorRecord) -> None:
         """Add ``rec`` to the next update (dropped then if its variables left the window)."""
@@ -382,7 +383,7 @@ class Backend:
             if rid not in kept:  # outliers and superseded priors are rejected for good
                 self.drop(rid, removed=rid in self._pending_remove
                                or r.kind in (RecordKind.ANCHOR, RecordKind.PRIOR))
-        self._recs = {}
+        self._recs.clear()
         for kf in self.st.kfs.values():
             kf.rids = []
         for r, i in zip(recs, idx):

@@ -13,19 +13,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from semfeat_ros.matching.geometry import epipolar_sines
+from semfeat_ros.camera.calibration import rpy_to_matrix
+from semfeat_ros.matching.geometry import epipolar_sines, skew
 
 _EPS = 1e-12
-
-
-def skew(v: np.ndarray) -> np.ndarray:
-    """3x3 cross-product matrix of a 3-vector (or (N, 3, 3) for (N, 3))."""
-    v = np.asarray(v, dtype=np.float64)
-    out = np.zeros(v.shape[:-1] + (3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
-    return out
 
 
 def so3_exp(w: np.ndarray) -> np.ndarray:
@@ -105,16 +96,6 @@ def transform_covariance(cov: np.ndarray, T_a_b: np.ndarray) -> np.ndarray:
     """
     A = adjoint(se3_inv(T_a_b))
     return A @ cov @ A.T
-
-
-def rpy_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """Rz(yaw) Ry(pitch) Rx(roll) (rad), REP-103 fixed axes."""
-    cr, sr, cp, sp = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch)
-    cy, sy = np.cos(yaw), np.sin(yaw)
-    rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
-    ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
-    rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
-    return rz @ ry @ rx
 
 
 def yaw_of(R: np.ndarray) -> float:
@@ -401,7 +382,7 @@ def align_yaw(src: np.ndarray, dst: np.ndarray, with_scale: bool
     sxx = np.sum(a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1])
     sxy = np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])
     yaw = np.arctan2(sxy, sxx)
-    R = rpy_matrix(0.0, 0.0, yaw)
+    R = rpy_to_matrix(0.0, 0.0, yaw)
     ra = a @ R.T
     s = float(np.sum(b * ra) / max(np.sum(a * a), _EPS)) if with_scale else 1.0
     t = md - s * R @ ms

@@ -71,12 +71,13 @@ class OutlierHandler:
         """Chi-square test of the bearing factors of the landmarks just observed; factors
         failing it are removed at the next update, landmarks left with < 2 are killed."""
         recs = []  # the bearing factors of those landmarks (each knows its landmark, keyframe)
+        records = self._backend.records
         for lid in lids:
             lm = self.st.lms.get(lid)
             if lm is None or not lm.alive:
                 continue
             for rid in lm.rids:
-                rec = self._backend.records.get(rid)
+                rec = records.get(rid)
                 if rec is not None and rec.kind == RecordKind.BEARING:
                     recs.append(rec)
         if not recs:

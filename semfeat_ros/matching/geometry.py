@@ -127,9 +127,13 @@ class Verification:
 
 
 def skew(v: np.ndarray) -> np.ndarray:
-    """(3, 3) cross-product matrix ``[v]x`` of a 3-vector."""
-    x, y, z = (float(c) for c in v)
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    """(3, 3) cross-product matrix ``[v]x`` of a 3-vector (``(N, 3, 3)`` for ``(N, 3)``)."""
+    v = np.asarray(v, dtype=np.float64)
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
 
 
 def rotation_from_vector(w: np.ndarray) -> np.ndarray:

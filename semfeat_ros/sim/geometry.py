@@ -15,7 +15,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from semfeat_ros.camera.calibration import rpy_to_matrix
 from semfeat_ros.sim.errors import ShapeError
+
+__all__ = [
+    'camera_pose', 'check_transform', 'invert_transform', 'make_transform', 'matrix_to_rpy',
+    'quaternion_from_matrix', 'rot_x', 'rot_y', 'rot_z', 'rpy_to_matrix', 'transform_points',
+]
 
 
 def rot_x(a: float) -> np.ndarray:
@@ -34,11 +40,6 @@ def rot_z(a: float) -> np.ndarray:
     """Rotation matrix about z by ``a`` rad."""
     c, s = np.cos(a), np.sin(a)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def rpy_to_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """ROS fixed-axis roll/pitch/yaw (rad) to a rotation matrix ``Rz(yaw) Ry(pitch) Rx(roll)``."""
-    return rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)
 
 
 def matrix_to_rpy(R: np.ndarray) -> tuple[float, float, float]:
