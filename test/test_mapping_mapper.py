@@ -366,8 +366,7 @@ def test_window_stays_bounded(with_odometry: Run) -> None:
     win = m.window()
     assert win['keyframes'] <= conf['window_keyframes'] + conf['marginalize_every']
     assert win['landmarks'] < 0.5 * m.stats['landmarks'] and win['map_points'] > 500
-    kf_ms = [r.update_ms for r in with_odometry.results if r.keyframe]
-    assert np.median(kf_ms) < 250  # generous: CI machines are shared; see the benchmark
+    # its cost per keyframe is measured by `python -m semfeat_ros.mapping.benchmark`, not here
 
 
 def test_benchmark_smoke(capsys: pytest.CaptureFixture[str]) -> None:
