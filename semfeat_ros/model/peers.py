@@ -29,6 +29,7 @@ pixel centres at integers, as OpenCV's.
 """
 from __future__ import annotations
 
+import abc
 from collections.abc import Iterator
 import contextlib
 from dataclasses import dataclass
@@ -195,7 +196,7 @@ def _inside(mask: torch.Tensor, keypoints: torch.Tensor) -> torch.Tensor:
     return out
 
 
-class PeerExtractor:
+class PeerExtractor(abc.ABC):
     """Base class: validation, threads, the mask and the cap on the keypoint count.
     Subclasses implement :meth:`_detect` and extend ``default_conf`` (one comment per key)."""
 
@@ -219,11 +220,11 @@ class PeerExtractor:
                 f'{self.kind}: num_threads must be >= 1, got {self.conf["num_threads"]}')
         torch.set_num_threads(int(self.conf['num_threads']))
 
+    @abc.abstractmethod
     def _detect(self, image: torch.Tensor, mask: torch.Tensor
                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Keypoints (N, 2) px, scores (N,) and unit descriptors (N, D) of ``image``
         (1, 3, H, W) in [0, 1], ideally only where ``mask`` (H, W) bool holds."""
-        raise NotImplementedError
 
     @torch.inference_mode()
     def extract(self, image: np.ndarray, mask: np.ndarray | None = None) -> PeerFeatures:

