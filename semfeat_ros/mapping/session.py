@@ -201,8 +201,8 @@ class FrameFeeder:
 
     Frames and odometry arrive on separate streams; a frame that reaches the session before the
     odometry sample after its stamp has no motion to go with it, and the mapper then loses its
-    keyframe chain (live on 2 busy cores that happened twice a run, and the map fell apart: see
-    docs/RESULTS.md, session 11). So a frame waits until odometry at or after its stamp has
+    keyframe chain (live on 2 busy cores that happened about twice a run, and the map fell
+    apart). So a frame waits until odometry at or after its stamp has
     arrived, or until ``wait_s`` of stream time has passed (``now_ns`` of :meth:`release`: the
     newest stamp or bag time seen), so a stalled odometry stream delays frames by a bounded
     time. Without odometry (``expect_odometry`` False until the first sample arrives) frames

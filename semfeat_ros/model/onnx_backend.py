@@ -10,7 +10,7 @@ Why: PyTorch's eager CPU convolutions depend heavily on the CPU's vector units. 
 CPU (no AVX-512, no BF16) the fused channels-last forward at 640x512 took 62.5 ms against 47 ms
 on the AVX-512 machine of earlier sessions; ONNX Runtime runs the same graph in 37.8 ms there
 (1.65x; ``extract()`` at 1920x1536: 66 against 120 ms), with outputs equal to about 1e-5
-(``python -m semfeat_ros.model.benchmark``; docs/RESULTS.md, session 11).
+(``python -m semfeat_ros.model.benchmark``).
 
 Sessions are kept per input size in a least-recently-used cache of :data:`MAX_SESSIONS` sizes
 (each holds about 30 MB at 640x512); a session is built without holding the lock that the
