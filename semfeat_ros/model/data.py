@@ -40,6 +40,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 import glob
+import hashlib
 import importlib.util
 from pathlib import Path
 from typing import Any
@@ -263,23 +264,22 @@ class _AlikedScores:
         self.teacher: Any = None
 
     def __call__(self, rgb: np.ndarray) -> np.ndarray:
-        import hashlib
+        from semfeat_ros.model.teachers import AlikedScoreTeacher
         key = hashlib.sha1(rgb.tobytes() + repr(rgb.shape).encode()).hexdigest()
         path = None if self.cache is None else self.cache / f'aliked_{key}.npy'
         if path is not None and path.is_file():
-            score = np.load(path, allow_pickle=False).astype(np.float32)
+            score = np.load(path, allow_pickle=False)
         else:
             if self.teacher is None:
-                from semfeat_ros.model.teachers import AlikedScoreTeacher
                 self.teacher = AlikedScoreTeacher()
-            score = self.teacher(rgb)
+            # float16 as cached, so a cold and a warm cache give the same training data
+            score = self.teacher(rgb).astype(np.float16)
             if path is not None:
                 path.parent.mkdir(parents=True, exist_ok=True)
                 tmp = path.with_suffix('.tmp.npy')
-                np.save(tmp, score.astype(np.float16), allow_pickle=False)
+                np.save(tmp, score, allow_pickle=False)
                 tmp.replace(path)
-        from semfeat_ros.model.teachers import AlikedScoreTeacher
-        return score * np.float32(self.scale / AlikedScoreTeacher.threshold)
+        return score.astype(np.float32) * np.float32(self.scale / AlikedScoreTeacher.threshold)
 
 
 def load_photo_frames(paths: Sequence[Path], long_side: int, adaptation: int,
