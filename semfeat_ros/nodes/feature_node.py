@@ -86,10 +86,10 @@ class FeatureNodeConfig:
     mask_resolution: str = param('input', 'Size of the published mask: input image, network '
                                  'input, or the segmentation logit grid (network input / 2)',
                                  choices=('input', 'network', 'seg'), read_only=True)
-    # off by default: with the v2 weights bf16 moves keypoints inside their 8x8 cells (the
-    # keypoint head reads raw pixel values); on the demo bag the map's ATE went 0.11 -> 0.53 m
+    # off by default: bf16 rounds the raw pixel values the keypoint head reads, which moves
+    # keypoints inside their 8x8 cells
     bf16: str = param('off', 'bfloat16 autocast of the network: auto (on when the CPU has '
-                      'BF16 units: avx512_bf16 / amx_bf16), on, off (default: v2 keypoints '
+                      'BF16 units: avx512_bf16 / amx_bf16), on, off (default: keypoints '
                       'lose their sub-cell precision in bf16)',
                       choices=('auto', 'on', 'off'), read_only=True)
     warmup_size: list[int] = param([1920, 1536], 'Image size [width, height] (px) the network '
