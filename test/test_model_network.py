@@ -142,7 +142,8 @@ def test_seg_layers_deepen_the_stride4_decoder_and_keep_old_keys() -> None:
     small = {'encoder_channels': [8, 16, 24], 'decoder_channels': 16, 'descriptor_dim': 16,
              'seg_channels': 8, 'task_dim': 8, 'mixer_dim': 8}
     one = SemFeatNet(small).state_dict()
-    assert not any(k.startswith('seg_refine') for k in one)  # v0-v3 weights load unchanged
+    # checkpoints without seg_refine keys load unchanged
+    assert not any(k.startswith('seg_refine') for k in one)
     torch.manual_seed(0)
     deep = SemFeatNet({**small, 'seg_layers': 3}).eval()
     extra = {k for k in deep.state_dict() if k not in one}

@@ -291,14 +291,14 @@ def test_shipped_config_files_match_the_code() -> None:
     assert set(raw['extractor']) == set(FeatureExtractor.default_conf)  # every key documented
     assert set(raw['network']) == set(SemFeatNet.default_conf)
     conf = load_train_conf(read_config(REPO / 'config' / 'train.yaml'))
-    v8 = {**shipped.conf, 'kp_refine_channels': 0}
-    v5 = {**v8, 'seg_context_blocks': 0}
-    assert conf['network'] == {**v5, 'seg_stride': 4}  # stage 1 (v3)
+    net3 = {**shipped.conf, 'kp_refine_channels': 0}  # the network of stage 3
+    net2 = {**net3, 'seg_context_blocks': 0}  # of stage 2
+    assert conf['network'] == {**net2, 'seg_stride': 4}  # stage 1
     stage2 = load_train_conf(read_config(REPO / 'config' / 'finetune_seg.yaml'))
-    assert stage2['network'] == v5 and v5['seg_stride'] == 2  # stage 2 (v5)
+    assert stage2['network'] == net2 and net2['seg_stride'] == 2
     assert stage2['init_weights'] and stage2['train_only'] and stage2['data'] == conf['data']
     stage3 = load_train_conf(read_config(REPO / 'config' / 'finetune_seg_ctx_light.yaml'))
-    assert stage3['network'] == v8  # stage 3 (v8)
+    assert stage3['network'] == net3
     assert shipped.conf['seg_context_blocks'] == 2 and shipped.conf['seg_blocks'] == 0
     assert stage2['train_only'] == stage3['train_only']
     stage4 = load_train_conf(read_config(REPO / 'config' / 'finetune_kp.yaml'))
@@ -316,10 +316,10 @@ def test_shipped_config_files_match_the_code() -> None:
     assert stage5['loss']['distill_desc_weight'] > 0 and stage5['data']['photo_score'] == 'aliked'
     assert stage5['loss']['seg_lovasz_weight'] == stage2['loss']['seg_lovasz_weight']
     probe = load_train_conf(read_config(REPO / 'config' / 'finetune_joint.yaml'))
-    assert probe['network'] == v5 and probe['train_only'] == []  # a probe over stage 2
+    assert probe['network'] == net2 and probe['train_only'] == []  # a probe over stage 2
     assert probe['loss'] == stage2['loss'] and probe['init_weights'] != stage2['init_weights']
-    ctx = load_train_conf(read_config(REPO / 'config' / 'finetune_seg_ctx.yaml'))  # v7 probe
-    assert ctx['network'] == {**v5, 'seg_context_blocks': 4, 'seg_blocks': 2}
+    ctx = load_train_conf(read_config(REPO / 'config' / 'finetune_seg_ctx.yaml'))  # a probe
+    assert ctx['network'] == {**net2, 'seg_context_blocks': 4, 'seg_blocks': 2}
     assert ctx['train_only'] == stage2['train_only'] and ctx['loss'] == stage2['loss']
     assert ctx['init_weights'] == probe['init_weights'] == stage3['init_weights']  # stage 2's
     assert ctx['data']['pair_mix']['photo'] == 0.0 and ctx['data']['crop_size'] == [512, 384]

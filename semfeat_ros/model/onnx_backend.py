@@ -8,7 +8,7 @@ disk is executed.
 
 Why: PyTorch's eager CPU convolutions depend heavily on the CPU's vector units. On an AVX2-only
 CPU (no AVX-512, no BF16) the fused channels-last forward at 640x512 took 62.5 ms against 47 ms
-on the AVX-512 machine of earlier sessions; ONNX Runtime runs the same graph in 37.8 ms there
+on an AVX-512 machine; on the AVX2 CPU ONNX Runtime runs the same graph in 37.8 ms
 (1.65x; ``extract()`` at 1920x1536: 66 against 120 ms), with outputs equal to about 1e-5
 (``python -m semfeat_ros.model.benchmark``).
 

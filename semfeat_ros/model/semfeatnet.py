@@ -27,8 +27,8 @@ Design decisions the paper leaves open (documented here and in MODEL_CARD.md):
   map F1 folded to stride 8 (space-to-depth + 1x1 conv, XFeat-style, implemented as one 4x4
   stride-4 convolution, which is the same linear map) and, with ``kp_pixel_channels`` > 0, the
   grey input itself folded to stride 8 (each cell's 64 pixels as channels, two 1x1 layers), as
-  XFeat's keypoint head does: the v1 network (without it) placed its peaks a median 1.8 px from
-  the repeated ones, against 1.0 px for ORB on the same rendered pairs.
+  XFeat's keypoint head does: trained without it, the network placed its peaks a median 1.8 px
+  from the repeated ones, against 1.0 px for ORB on the same rendered pairs.
 * CTMM output. The mixer output ``z~`` lies in the span of the three value vectors, so it cannot
   replace the decoder features. It is combined with them by ``fusion``: ``'concat'`` (default):
   ``ReLU(BN(Conv1x1([z, z~])))`` back to the decoder width; ``'add'``: ``z + Conv1x1(z~)``.
@@ -234,20 +234,20 @@ class SemFeatNet(nn.Module):
         'kp_fine_channels': 32,  # channels of F1 (stride 2) folded to stride 8 for the kp head
         'kp_pixel_channels': 32,  # > 0: the grey input's 8x8 cells (pixel-unshuffled to 64
         #                           channels) through two 1x1 conv layers of this width also
-        #                           feed the kp head (XFeat-style); 0: off (weights v0/v1)
-        'kp_head_layers': 2,  # hidden 1x1 conv + BN + ReLU layers of the kp head (v0/v1: 1)
+        #                           feed the kp head (XFeat-style); 0: off
+        'kp_head_layers': 2,  # hidden 1x1 conv + BN + ReLU layers of the kp head
         'kp_refine_channels': 0,  # > 0: three 3x3 conv layers of this width at full input
         #                           resolution on the grey image and the cell logits add a
-        #                           per-pixel correction to the keypoint logits (0: off, v0-v8)
+        #                           per-pixel correction to the keypoint logits (0: off)
         'descriptor_dim': 64,  # D, length of the L2-normalised descriptors
         'seg_channels': 32,  # width of the segmentation decoder at stride 4
-        'seg_layers': 1,  # separable 3x3 layers of the segmentation decoder at stride 4 (v0-v3:
-        #                   1; the first sees the F2 skip)
-        'seg_stride': 4,  # px, stride of the segmentation logits: 4 (v0-v3) or 2 (v5, shipped:
-        #                   a residual refinement with the F1 skip over the stride-4 logits)
+        'seg_layers': 1,  # separable 3x3 layers of the segmentation decoder at stride 4 (the
+        #                   first sees the F2 skip)
+        'seg_stride': 4,  # px, stride of the segmentation logits: 4 or 2 (config/model.yaml: a
+        #                   residual refinement with the F1 skip over the stride-4 logits)
         'seg_context_blocks': 0,  # inverted-residual blocks on the segmentation branch's
         #                           stride-8 features after its CTMM, dilations 1, 2, 4, 8 in
-        #                           turn (0: none, weights v0-v6)
+        #                           turn (0: none)
         'seg_blocks': 0,  # inverted-residual blocks after the stride-4 segmentation decoder
         'seg_block_expansion': 3,  # hidden width / input width of those blocks
         'num_classes': 19,  # C, semantic classes (config/labels.yaml)
@@ -325,7 +325,8 @@ class SemFeatNet(nn.Module):
             *[InvertedResidual(seg_c, expansion) for _ in range(int(conf['seg_blocks']))])
         self.seg_reduce = conv_bn_relu(width, seg_c, kernel=1)
         self.seg_decoder = separable_bn_relu(seg_c + enc[1], seg_c)
-        # the layers after the first: empty with seg_layers 1, so v0-v3 weights keep their keys
+        # the layers after the first: empty with seg_layers 1, so checkpoints without seg_refine
+        # keys load unchanged
         self.seg_refine = nn.Sequential(
             *[separable_bn_relu(seg_c, seg_c) for _ in range(int(conf['seg_layers']) - 1)])
         self.seg_head = nn.Conv2d(seg_c, int(conf['num_classes']), 1)

@@ -40,8 +40,8 @@ TRAIN_COMMAND = ('semfeat-train --config config/train.yaml --out out/train_v3, t
 
 
 LEGACY_NETWORK_CONF: dict[str, Any] = {'kp_pixel_channels': 0, 'kp_head_layers': 1}
-"""Network keys added after weights v1, at the values that reproduce the older layout: a
-weights JSON without them was trained without them."""
+"""Network keys a weights JSON may lack, at the values that reproduce the layout it was trained
+with: a JSON without them describes a network without those layers."""
 
 
 def resolve_weights_path(path: str | Path | None) -> Path:
