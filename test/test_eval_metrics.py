@@ -214,7 +214,7 @@ def test_compatibility_matrix() -> None:
 def test_segmentation_iou() -> None:
     gt = np.array([[0, 0, 1], [1, 2, 255]], dtype=np.uint8)
     pred = np.array([[0, 1, 1], [1, 255, 0]], dtype=np.uint8)
-    cm = confusion_matrix(gt, pred, 3)
+    cm = confusion_matrix(pred, gt, 3)
     # rows: GT 0 -> pred {0, 1}; GT 1 -> {1, 1}; GT 2 -> "none"; the GT-255 pixel is ignored.
     assert cm.tolist() == [[1, 1, 0, 0], [0, 2, 0, 0], [0, 0, 0, 1]]
     iou = iou_from_confusion(cm)
@@ -224,6 +224,6 @@ def test_segmentation_iou() -> None:
     assert summ['pixel_accuracy'] == pytest.approx(3 / 5)
     assert summ['iou']['b'] == pytest.approx(2 / 3)
     valid = np.array([[True, False, True], [True, True, True]])
-    assert confusion_matrix(gt, pred, 3, valid=valid).sum() == 4
+    assert confusion_matrix(pred, gt, 3, valid=valid).sum() == 4
     with pytest.raises(ValueError, match='shape'):
-        confusion_matrix(gt, pred[:, :2], 3)
+        confusion_matrix(pred[:, :2], gt, 3)

@@ -264,7 +264,7 @@ def test_plugin_method_and_segmentation(tmp_path: Path, frames: list[Frame],
     assert res['methods']['const_seg']['summary']['n_pairs'] == 2
     seg = res['segmentation']['test_constant_seg']
     assert seg['n_images'] == 4
-    cm = sum(confusion_matrix(f.labels, np.full(f.labels.shape, WALL, np.uint8), 19,
+    cm = sum(confusion_matrix(np.full(f.labels.shape, WALL, np.uint8), f.labels, 19,
                               valid=p.mask_a if k == 0 else p.mask_b)
              for p in pairs for k, f in enumerate((frames[int(p.name[1])],
                                                    frames[int(p.name[1]) + 1])))

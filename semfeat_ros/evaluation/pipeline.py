@@ -274,7 +274,7 @@ def _accumulate_segmentation(pair: Pair, key: str, fa: Features, fb: Features,
         if pred.shape != labels.shape:
             pred = cv2.resize(pred, (labels.shape[1], labels.shape[0]),
                               interpolation=cv2.INTER_NEAREST)
-        cm = confusion_matrix(labels, pred, NUM_CLASSES, valid=mask)
+        cm = confusion_matrix(pred, labels, NUM_CLASSES, valid=mask)
         seg_cm[key] = seg_cm[key] + cm if key in seg_cm else cm
         seg_count[key] = seg_count.get(key, 0) + 1
 

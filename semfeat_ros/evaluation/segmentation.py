@@ -12,13 +12,15 @@ IGNORE = 255
 """GT label of pixels that are not scored (outside the image circle, unlabeled)."""
 
 
-def confusion_matrix(gt: np.ndarray, pred: np.ndarray, num_classes: int,
+def confusion_matrix(pred: np.ndarray, gt: np.ndarray, num_classes: int,
                      valid: np.ndarray | None = None) -> np.ndarray:
     """(C, C + 1) int64 counts, rows = GT class, columns = predicted class; the last column
     counts predictions outside ``0..C-1`` (e.g. 255, "no class"), which are misses of the row's
-    class. Pixels with GT ``255`` (or any id >= C) or outside ``valid`` are skipped."""
-    gt = np.asarray(gt)
+    class. Pixels with GT ``255`` (or any id >= C) or outside ``valid`` are skipped. The one
+    confusion matrix of the package (:func:`semfeat_ros.model.metrics.confusion_matrix` is its
+    square part)."""
     pred = np.asarray(pred)
+    gt = np.asarray(gt)
     if gt.shape != pred.shape:
         raise ConfigError(f'segmentation: GT shape {gt.shape} != prediction shape {pred.shape}')
     keep = gt.astype(np.int64) < num_classes

@@ -8,19 +8,17 @@ from collections.abc import Callable
 
 import numpy as np
 
-IGNORE = 255
+from semfeat_ros.evaluation import segmentation
 
 Correspond = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 """``pts_a (N, 2) -> (pts_b (N, 2), valid (N,))`` ground-truth mapping of a pair."""
 
 
 def confusion_matrix(pred: np.ndarray, gt: np.ndarray, num_classes: int) -> np.ndarray:
-    """(C, C) int64 counts ``[gt, pred]`` over pixels whose ``gt`` is not 255."""
-    keep = gt != IGNORE
-    g = gt[keep].astype(np.int64)
-    p = np.clip(pred[keep].astype(np.int64), 0, num_classes - 1)
-    return np.bincount(g * num_classes + p, minlength=num_classes ** 2).reshape(num_classes,
-                                                                               num_classes)
+    """(C, C) int64 counts ``[gt, pred]`` over pixels whose ``gt`` is not 255: the scored
+    columns of :func:`semfeat_ros.evaluation.segmentation.confusion_matrix` (``pred`` holds class
+    ids ``0..C-1``, an argmax of the logits)."""
+    return segmentation.confusion_matrix(pred, gt, num_classes)[:, :num_classes]
 
 
 def mean_iou(conf: np.ndarray) -> tuple[float, np.ndarray]:
