@@ -119,14 +119,6 @@ def warp_image(image: np.ndarray, H: np.ndarray, size: tuple[int, int] | None = 
                                borderValue=border_value)
 
 
-def warp_mask(mask: np.ndarray, H: np.ndarray, size: tuple[int, int] | None = None,
-              margin_px: int = 0) -> np.ndarray:
-    """Warp a bool validity mask by ``H``; ``margin_px`` erodes the result (px) so pixels whose
-    interpolation touched the invalid region are dropped too."""
-    warped = warp_image(mask.astype(np.uint8) * 255, H, size, nearest=True) > 127
-    return erode_mask(warped, margin_px)
-
-
 def erode_mask(mask: np.ndarray, margin_px: int) -> np.ndarray:
     """Shrink a bool mask by ``margin_px`` px (the image frame counts as invalid outside)."""
     if margin_px <= 0:

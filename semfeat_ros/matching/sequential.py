@@ -302,10 +302,6 @@ class SequentialMatcher:
         self._desc_sig = None
         return np.asarray(ended, dtype=np.uint32)
 
-    @property
-    def next_track_id(self) -> int:
-        return self.tracks.next_id
-
     def _validate(self, frame: FrameFeatures) -> tuple[np.ndarray, ...]:
         if isinstance(frame.stamp_ns, bool) or not isinstance(frame.stamp_ns, int | np.integer):
             raise FeatureInputError(

@@ -58,11 +58,6 @@ class TrackManager:
         self._seen: set[int] = set()
 
     @property
-    def next_id(self) -> int:
-        """The id the next new track gets."""
-        return self._next_id
-
-    @property
     def frame(self) -> int:
         """Sequence number of the current (or last finished) frame; -1 before the first."""
         return self._frame

@@ -423,12 +423,6 @@ def _sample_map(fmap: torch.Tensor, points: torch.Tensor, size: tuple[int, int])
     return out[:, :, 0].transpose(1, 2)
 
 
-
-def upsample_mask(mask: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """Nearest-neighbour resize of a class-id mask to ``size = (W, H)`` px."""
-    return cv2.resize(np.asarray(mask, dtype=np.uint8), size, interpolation=cv2.INTER_NEAREST)
-
-
 def load_model_yaml(path: str | Path | None = None) -> dict[str, dict[str, Any]]:
     """``{'network': ..., 'extractor': ...}`` of config/model.yaml (default: the shipped one).
 
