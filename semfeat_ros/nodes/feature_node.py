@@ -130,8 +130,19 @@ def frontend_config(c: FeatureNodeConfig, weights: str | None = None) -> Fronten
 class FeatureNode(Node):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('feature_node', **kwargs)
+        self.declare()
+        self.setup()
+        self.subscribe_inputs()
+
+    def declare(self) -> None:
+        """The parameters and their run-time checks (once per node)."""
         self.conf = declare_config(self, FeatureNodeConfig)
         guard_updates(self, FeatureNodeConfig)
+
+    def setup(self) -> None:
+        """Everything but the subscriptions, from ``self.conf``: the front end (weights
+        loaded), worker threads, publishers and the diagnostics timer (the managed variant's
+        configure)."""
         c = self.conf
         self.health = NodeHealth(self, input_timeout_s=c.input_timeout_s,
                                  drop_warn_ratio=c.drop_warn_ratio)
@@ -153,6 +164,17 @@ class FeatureNode(Node):
                                                   name='feature-inference')
 
         io = self.health.io
+        self.pub_features = io.publish(PointCloud2, c.features_topic, 10)
+        self.pub_mask = io.publish(Image, c.mask_topic, 10)
+        self.pub_color = io.publish(Image, c.mask_topic + '/color', 10)
+        self.create_timer(c.diagnostics_period_s, self._publish_diagnostics)
+        self.get_logger().info(
+            f'feature_node ready: {c.input_transport} input on {c.image_topic}, '
+            f'network {self.frontend.describe()}')
+
+    def subscribe_inputs(self) -> None:
+        """The image and CameraInfo subscriptions (the managed variant's activate)."""
+        c, io = self.conf, self.health.io
         qos_in = input_qos(c.input_reliability, c.input_depth)
         if c.input_transport == 'raw':
             io.subscribe(Image, c.image_topic, self._on_image, qos_in, watch='image')
@@ -162,13 +184,6 @@ class FeatureNode(Node):
         io.subscribe(CameraInfo, c.camera_info_topic, self._on_camera_info,
                      input_qos(c.input_reliability),
                      watch='CameraInfo' if c.require_camera_info else None)
-        self.pub_features = io.publish(PointCloud2, c.features_topic, 10)
-        self.pub_mask = io.publish(Image, c.mask_topic, 10)
-        self.pub_color = io.publish(Image, c.mask_topic + '/color', 10)
-        self.create_timer(c.diagnostics_period_s, self._publish_diagnostics)
-        self.get_logger().info(
-            f'feature_node ready: {c.input_transport} input on {c.image_topic}, '
-            f'network {self.frontend.describe()}')
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
         try:
@@ -264,9 +279,15 @@ class FeatureNode(Node):
                                  change_outliers_ignored=str(counts.outliers))
         self.health.publish()
 
-    def destroy_node(self) -> None:
+    def release(self) -> None:
+        """Stop the worker threads and free the front end (the managed variant's cleanup)."""
         self._preparer.stop()
         self._worker.stop()
+        self.frontend = None
+
+    def destroy_node(self) -> None:
+        if getattr(self, 'frontend', None) is not None:
+            self.release()
         super().destroy_node()
 
 

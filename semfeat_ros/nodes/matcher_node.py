@@ -130,8 +130,20 @@ def matcher_conf(c: MatcherNodeConfig) -> dict[str, Any]:
 class MatcherNode(Node):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('matcher_node', **kwargs)
-        self.conf = c = declare_config(self, MatcherNodeConfig)
+        self.declare()
+        self.setup()
+        self.subscribe_inputs()
+
+    def declare(self) -> None:
+        """The parameters, their run-time checks and updates (once per node)."""
+        self.conf = declare_config(self, MatcherNodeConfig)
         guard_updates(self, MatcherNodeConfig)
+        self.add_post_set_parameters_callback(self._apply_parameters)
+
+    def setup(self) -> None:
+        """Everything but the subscriptions, from ``self.conf``: the matcher, publishers and
+        the diagnostics timer (the managed variant's configure)."""
+        c = self.conf
         self.health = NodeHealth(self, input_timeout_s=c.input_timeout_s,
                                  drop_warn_ratio=c.drop_warn_ratio)
         self.matcher = SequentialMatcher(matcher_conf(c))
@@ -145,6 +157,15 @@ class MatcherNode(Node):
         self._images: OrderedDict[int, Image | CompressedImage] = OrderedDict()
         self._last_image: np.ndarray | None = None
         io = self.health.io
+        self.pub_tracks = io.publish(PointCloud2, c.tracks_topic, 10)
+        self.pub_debug = io.publish(Image, c.matches_image_topic, 2)
+        self.create_timer(c.diagnostics_period_s, self._publish_diagnostics)
+        self.get_logger().info(f'matcher_node ready: {c.features_topic} -> {c.tracks_topic}')
+
+    def subscribe_inputs(self) -> None:
+        """The features, CameraInfo and image subscriptions (the managed variant's
+        activate)."""
+        c, io = self.conf, self.health.io
         io.subscribe(PointCloud2, c.features_topic, self._on_features,
                      input_qos(c.input_reliability), watch='features')
         io.subscribe(CameraInfo, c.camera_info_topic, self._on_camera_info, input_qos(),
@@ -154,18 +175,18 @@ class MatcherNode(Node):
         else:
             io.subscribe(CompressedImage, c.image_topic + '/compressed', self._on_image,
                          input_qos(depth=2))
-        self.pub_tracks = io.publish(PointCloud2, c.tracks_topic, 10)
-        self.pub_debug = io.publish(Image, c.matches_image_topic, 2)
-        self.create_timer(c.diagnostics_period_s, self._publish_diagnostics)
-        self.add_post_set_parameters_callback(self._apply_parameters)
-        self.get_logger().info(f'matcher_node ready: {c.features_topic} -> {c.tracks_topic}')
+
+    def release(self) -> None:
+        """Free the matcher and its tracks (the managed variant's cleanup)."""
+        self.matcher = None
 
     def _apply_parameters(self, params: list[Any]) -> None:
         """Accepted run-time changes (ranges checked, read-only ones refused before) take
-        effect from the next frame; this runs on the executor, between frames."""
+        effect from the next frame; this runs on the executor, between frames (without a
+        matcher, in the managed variant's unconfigured state, the next configure reads them)."""
         for p in params:
             where = RUNTIME_PARAMS.get(p.name)
-            if where is not None:
+            if where is not None and getattr(self, 'matcher', None) is not None:
                 section, key = where
                 self.matcher.conf[section][key] = p.value
                 self.get_logger().info(f'{p.name} = {p.value}')
