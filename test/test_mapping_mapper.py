@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from semfeat_ros.camera import Extrinsic, FisheyeCamera, rpy_to_matrix
+from semfeat_ros.camera import Extrinsic, FisheyeCamera
 from semfeat_ros.labels import load_labels
 from semfeat_ros.mapping import (
     GnssFix,
@@ -46,6 +46,7 @@ from semfeat_ros.mapping.synthetic import (
     make_path,
     make_world,
 )
+from semfeat_ros.rotations import rpy_to_matrix
 
 CAMERA = FisheyeCamera(640, 512, 186.7, 186.7, 320, 256, k=(0.02, -0.004, 0.0005, -0.0001),
                        fov_deg=190)
@@ -66,11 +67,14 @@ class Run:
     dynamic_tracks: int = 0
 
     def trajectory(self, T_frame: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """(estimated, ground-truth) keyframe base poses; GT optionally moved to another frame."""
+        """(estimated, ground-truth) keyframe base poses; given the drive's ENU frame
+        ``T_frame``, both in ENU: the ground truth through it, the estimate through the
+        mapper's ``map_in_enu``."""
         stamps, est = self.mapper.trajectory()
         gt = np.array([self.gt[s] for s in stamps])
         if T_frame is not None:
             gt = np.einsum('ij,kjl->kil', T_frame, gt)
+            est = np.einsum('ij,kjl->kil', self.mapper.map_in_enu, est)
         return est, gt
 
     def events(self) -> list[str]:
@@ -306,26 +310,45 @@ def test_gnss_aligns_map_to_enu_and_rejects_jumps(with_gnss: Run) -> None:
     assert m.gnss_aligned and any(e.startswith('gnss_aligned') for e in events)
     jumps = [e for e in events if e.startswith('gnss_rejected: inconsistent')]
     assert len(jumps) == 3, jumps
+    T = m.map_in_enu
+    assert T is not None and np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3))
+    assert np.allclose(T[2, :3], [0.0, 0.0, 1.0])  # a rotation about z: the map stays level
     est, gt = with_gnss.trajectory(T_ENU_MAP)
-    assert ate_rmse(est, gt, align=False) < 0.1  # the map frame is ENU now: no alignment
-    cloud = m.cloud()
-    assert np.linalg.norm(np.median(cloud.xyz, axis=0)[:2] - T_ENU_MAP[:2, 3]) < 60
+    assert ate_rmse(est, gt, align=False) < 0.1  # ENU through map_in_enu: no alignment
+    enu = m.cloud().xyz @ T[:3, :3].T + T[:3, 3]
+    assert np.linalg.norm(np.median(enu, axis=0)[:2] - T_ENU_MAP[:2, 3]) < 60
 
 
-def test_gnss_arriving_late_moves_the_marginalised_map_too() -> None:
+def test_gnss_alignment_leaves_the_published_poses_continuous(with_gnss: Run) -> None:
+    # the map frame does not move when GNSS arrives (ENU is its parent): every frame's estimate
+    # moves as far as the vehicle did, the frame of the alignment included
+    res = [r for r in with_gnss.results if r.T_map_base is not None]
+    aligned = next(i for i, r in enumerate(res) if any(
+        e.startswith('gnss_aligned') for e in r.events))
+    assert aligned > 0
+    est = np.array([r.T_map_base[:3, 3] for r in res])
+    gt = np.array([with_gnss.gt[r.stamp_ns][:3, 3] for r in res])
+    step_error = np.abs(np.linalg.norm(np.diff(est, axis=0), axis=1)
+                        - np.linalg.norm(np.diff(gt, axis=0), axis=1))
+    assert step_error[aligned - 1] < 0.05, step_error[aligned - 1]
+    assert step_error.max() < 0.1, (int(step_error.argmax()), float(step_error.max()))
+
+
+def test_gnss_arriving_late_anchors_the_marginalised_map_too() -> None:
     # covered deck first: the fixes start after 140 frames, long after the first states left
-    # the window; the alignment moves trajectory, window and voxel map into ENU together
+    # the window; through map_in_enu trajectory, window and voxel map all land in ENU together
     conf = DriveConfig(seed=8, odometry=True, gnss_every=2, gnss_start=140, T_enu_map=T_ENU_MAP)
     run = drive_through(conf)
     first_fix_kf = next(i for i, r in enumerate(
         [r for r in run.results if r.keyframe]) if r.stamp_ns >= run.drive.stamps_ns[140])
     assert first_fix_kf > run.mapper.conf['window_keyframes']
     assert run.mapper.gnss_aligned
+    T = run.mapper.map_in_enu
     est, gt = run.trajectory(T_ENU_MAP)
     assert ate_rmse(est, gt, align=False) < 0.1
-    cloud = run.mapper.cloud()
+    cloud_enu = run.mapper.cloud().xyz @ T[:3, :3].T + T[:3, 3]
     world_enu = run.drive.world.points @ T_ENU_MAP[:3, :3].T + T_ENU_MAP[:3, 3]
-    dist = cKDTree(world_enu).query(cloud.xyz)[0]
+    dist = cKDTree(world_enu).query(cloud_enu)[0]
     assert np.median(dist) < 0.1
 
 

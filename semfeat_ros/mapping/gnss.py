@@ -2,9 +2,13 @@
 wheel-odometry calibration learnt on GNSS-anchored keyframes.
 
 Until the map is aligned, accepted fixes wait as (keyframe, position, covariance) pairs; once
-they span enough distance the map frame is moved to ENU (a similarity of the whole estimate,
-the marginalised map included) and every later keyframe with a fix gets a GNSS factor. Fixes are
-gated on their covariance and, once aligned, on their distance to the predicted antenna.
+they span enough distance the alignment finds ``map_in_enu``, the rigid transform (a rotation
+about z and a translation) from the map frame to ENU, and every fix from then on enters the map
+frame through it: the waiting pairs and every later keyframe with a fix get a GNSS factor. The
+map frame itself never moves, so the trajectory a subscriber receives has no step where GNSS
+arrives (REP-105's ``earth``/``map`` split: ENU is a parent of ``map``). Only a map whose scale
+came from nothing metric (no wheel odometry) is rescaled once, by the alignment's scale. Fixes
+are gated on their covariance and, once aligned, on their distance to the predicted antenna.
 """
 from __future__ import annotations
 
@@ -24,7 +28,7 @@ GNSS_ANCHOR_KF = 3  # a keyframe pair counts as GNSS-anchored with fixes this cl
 
 
 class GnssAlignment:
-    """GNSS fixes of one mapper: gate, attach to keyframes, align the map frame to ENU."""
+    """GNSS fixes of one mapper: gate, attach to keyframes, align the map frame with ENU."""
 
     def __init__(self, setup: MapperSetup, st: MapState, backend: Backend,
                  landmark_map: LandmarkMap) -> None:
@@ -36,6 +40,7 @@ class GnssAlignment:
         self._pairs: list[tuple[int, np.ndarray, np.ndarray]] = []  # before the alignment
         self._rejects = 0  # consecutive fixes rejected by the distance gate
         self._kids: set[int] = set()  # keyframes with a GNSS factor, not yet marginalised
+        self._T_enu_map: np.ndarray | None = None  # (4, 4) map -> ENU once aligned (m)
         c = setup.conf
         # odometry calibration; per keyframe the raw (heading change, distance, time in
         # motion) of the odometry from the previous keyframe
@@ -49,6 +54,19 @@ class GnssAlignment:
     def anchored_keyframes(self) -> frozenset[int]:
         """Window keyframes with a GNSS factor."""
         return frozenset(self._kids)
+
+    @property
+    def map_in_enu(self) -> np.ndarray | None:
+        """(4, 4) pose of the map frame in ENU (m; a rotation about z), None until aligned."""
+        return None if self._T_enu_map is None else self._T_enu_map.copy()
+
+    def to_map(self, position: np.ndarray, covariance: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """An ENU fix ``position`` (3,) m with ``covariance`` (3, 3) m^2 in the map frame."""
+        if self._T_enu_map is None:
+            raise RuntimeError('the map is not aligned with ENU yet')
+        R, t = self._T_enu_map[:3, :3], self._T_enu_map[:3, 3]
+        return R.T @ (np.asarray(position) - t), R.T @ np.asarray(covariance) @ R
 
     @property
     def waiting(self) -> bool:
@@ -67,7 +85,8 @@ class GnssAlignment:
 
     def check_fix(self, fix: GnssFix | None, T_wc_pred: np.ndarray | None,
                    events: list[str]) -> GnssFix | None:
-        """Covariance gate of a fix; returns it (with a floored covariance) or None."""
+        """Covariance gate of an ENU fix; returns it (with a floored covariance) or None:
+        in ENU until the alignment, in the map frame after it."""
         if fix is None:
             return None
         reason = None
@@ -90,6 +109,8 @@ class GnssAlignment:
             else:
                 w = np.maximum(w, self.setup.conf['gnss_min_sigma_m'] ** 2)
                 cov = (V * w) @ V.T
+                if self.st.gnss_aligned:
+                    pos, cov = self.to_map(pos, cov)
         if reason is None and self.st.gnss_aligned and T_wc_pred is not None:
             T_wb = T_wc_pred @ self.setup.T_cb
             pred = T_wb[:3, :3] @ self.setup.arm_b + T_wb[:3, 3]
@@ -138,11 +159,11 @@ class GnssAlignment:
             del self._pairs[:-500]  # bounded while waiting for enough spread to align
 
     def try_align(self, events: list[str]) -> None:
-        """Align the map frame to ENU once enough fixes with enough spread wait: a yaw (and,
+        """Align the map frame with ENU once enough fixes with enough spread wait: a yaw (and,
         without odometry scale, scale) similarity of the keyframes' antenna positions to the
-        fixes, outliers dropped while the rms exceeds ``gnss_align_max_rms_m``. The whole
-        estimate moves (:meth:`_apply_similarity`) and the window is rebuilt with the fixes'
-        factors."""
+        fixes, outliers dropped while the rms exceeds ``gnss_align_max_rms_m``. Its rotation
+        and translation become :attr:`map_in_enu`; a scale other than 1 rescales the whole
+        estimate (:meth:`_rescale`). The window is rebuilt with the fixes' factors."""
         c = self.setup.conf
         pairs = self._pairs
         if len(pairs) < c['gnss_align_min_fixes']:
@@ -168,12 +189,19 @@ class GnssAlignment:
             return
         if not 0.5 < s < 2.0:
             return
-        self._apply_similarity(s, R, t)
+        if s != 1.0:
+            self._rescale(s)
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, t
+        self._T_enu_map = T
         self.st.gnss_aligned = True
         events.append(f'gnss_aligned: rms {rms:.2f} m, scale {s:.3f}')
-        recs = [self.st.record(fac.gnss_factor(X(k), pos, cov, self.setup.arm_c, 2.0),
-                               RecordKind.GNSS, k)
+        recs = [self.st.record(fac.gnss_factor(X(k), *self.to_map(pos, cov),
+                                               self.setup.arm_c, 2.0), RecordKind.GNSS, k)
                 for (k, pos, cov), ok in zip(pairs, keep) if ok and k in self.st.kfs]
+        p = self._pending
+        if p is not None:  # held in ENU before the alignment
+            p.position, p.covariance = self.to_map(p.position, p.covariance)
         self._kids.update(r.kid for r in recs)
         self._pairs = []
         self.st.metric = True
@@ -183,14 +211,14 @@ class GnssAlignment:
             be.reset_window(self.st.last_kid, events)
         be.refresh()
 
-    def _apply_similarity(self, s: float, R: np.ndarray, t: np.ndarray) -> None:
-        """Move the whole estimate by ``x -> s R x + t`` (map frame change, e.g. to ENU)."""
+    def _rescale(self, s: float) -> None:
+        """Scale the whole estimate by ``x -> s x`` about the map origin: a map whose scale was
+        not metric takes the GNSS scale (positions only; rotations and the extrinsic stay)."""
         T_cb, T_bc = self.setup.T_cb, self.setup.T_bc
 
         def move(T: np.ndarray) -> np.ndarray:
             out = np.array(T)
-            out[:3, :3] = R @ T[:3, :3]
-            out[:3, 3] = s * R @ T[:3, 3] + t
+            out[:3, 3] = s * T[:3, 3]
             return out
 
         # the camera pose moves with the base: T_wc' = S T_wb T_bc; keep T_bc, scale positions
@@ -202,15 +230,15 @@ class GnssAlignment:
         for lid, lm in self.st.lms.items():
             est = self._backend.estimate
             xyz = est.atPoint3(L(lid)) if est.exists(L(lid)) else lm.xyz
-            lm.xyz = s * R @ xyz + t
+            lm.xyz = s * np.asarray(xyz)
             values.insert(L(lid), lm.xyz)
         self._backend.move_estimate(values)
         for tr in self.st.tracks.values():
             if tr.frozen is not None:
-                tr.frozen = s * R @ tr.frozen + t
-        self.st.final_xyz = {k: s * R @ v + t for k, v in self.st.final_xyz.items()}
+                tr.frozen = s * tr.frozen
+        self.st.final_xyz = {k: s * v for k, v in self.st.final_xyz.items()}
         self.st.history = [(st, move(T @ T_cb) @ T_bc) for st, T in self.st.history]
-        self._map.transform(s, R, t)
+        self._map.transform(s, np.eye(3), np.zeros(3))
         if self.st.link is not None:
             self.st.link['T_wc'] = move(self.st.link['T_wc'] @ T_cb) @ T_bc
         p = self._pending

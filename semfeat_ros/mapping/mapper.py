@@ -21,7 +21,10 @@
   per-keyframe cost and smoother memory stay flat on a long drive; the published cloud.
 
 Frames: poses returned are base_link in ``map`` (z up, m); internally the pose variables are the
-camera optical frame in ``map`` so that bearings need no extrinsic inside the factors.
+camera optical frame in ``map`` so that bearings need no extrinsic inside the factors. The map
+frame is set when the map starts and never moves: GNSS, once aligned, enters through
+:attr:`Mapper.map_in_enu` (ENU is the map frame's parent), so consecutive estimates have no step
+where GNSS arrives.
 """
 from __future__ import annotations
 
@@ -108,8 +111,13 @@ class Mapper:
 
     @property
     def gnss_aligned(self) -> bool:
-        """True once the map frame has been aligned to the GNSS (ENU) frame."""
+        """True once the map frame's pose in the GNSS (ENU) frame is known."""
         return self.st.gnss_aligned
+
+    @property
+    def map_in_enu(self) -> np.ndarray | None:
+        """(4, 4) pose of the map frame in ENU (m; rotation about z), None until aligned."""
+        return self.gnss.map_in_enu
 
     def update(self, tracks: Tracks, odometry: OdometryDelta | None = None,
                gnss: GnssFix | None = None) -> MapperResult:

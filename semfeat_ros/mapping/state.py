@@ -134,7 +134,7 @@ class PendingFix:
     """A GNSS fix of a frame that was not a keyframe, waiting for the next keyframe."""
 
     stamp_ns: int
-    position: np.ndarray  # (3,) antenna in map/ENU (m)
+    position: np.ndarray  # (3,) antenna (m): ENU before the alignment, map frame after
     covariance: np.ndarray  # (3, 3) m^2
     T_wb: np.ndarray | None  # estimated base pose at the fix's frame
 
@@ -221,7 +221,7 @@ class MapState:
         self.state = 'initializing'  # 'initializing', 'tracking', 'odometry_only' or 'lost'
         self.metric = False
         self.scale_from_odometry = False
-        self.gnss_aligned = False  # the map frame is ENU
+        self.gnss_aligned = False  # the map frame's pose in ENU is known (mapping/gnss.py)
         self.tracks: dict[int, Track] = {}
         # the trajectory: every keyframe ever made, in order (kid = index)
         self.kf_stamps: list[int] = []

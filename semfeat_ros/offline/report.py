@@ -92,6 +92,7 @@ def run_summary(run: MapRun) -> dict[str, Any]:
         'frames_read': run.counts.get('frames_read', 0), 'frames_processed': len(mapped),
         'keyframes': len(kf), 'final_state': mapped[-1].result.state if mapped else None,
         'metric_scale': bool(mapper.metric), 'gnss_aligned': bool(mapper.gnss_aligned),
+        'map_in_enu': None if mapper.map_in_enu is None else mapper.map_in_enu.tolist(),
         'states': dict(states), 'counts': dict(run.counts),
         'cloud_points': len(cloud), 'dynamic_points': int(dyn[cloud.label].sum()),
         'cloud_per_class': {labels.names[c] if c < len(labels.names) else str(c): n
@@ -128,6 +129,14 @@ def evaluate_run(run: MapRun, gt_stamps: np.ndarray, gt_poses: np.ndarray,
         out['evaluation_error'] = str(exc)
         return out, None
     out['trajectory'] = ev.metrics
+    online = online_trajectory(run)
+    try:
+        ev_online = evaluate_trajectory(*online, gt_stamps, gt_poses, metric=mapper.metric)
+    except EvaluationError as exc:
+        out['trajectory_online'] = {'evaluation_error': str(exc)}
+    else:
+        out['trajectory_online'] = {**ev_online.metrics,
+                                    'max_altitude_step_m': max_altitude_step_m(online[1])}
     cloud = mapper.cloud()
     floor_args = (cloud, ev.sim3, mapper.floor_levels(), poses[:, :3, 3], levels_gt.altitudes)
     out['floors'] = aligned = floor_accuracy(*floor_args)
@@ -139,6 +148,21 @@ def evaluate_run(run: MapRun, gt_stamps: np.ndarray, gt_poses: np.ndarray,
         out['point_errors'] = point_errors(cloud, ev.sim3, truth)
         out['surfaces'] = surface_accuracy(cloud, ev.sim3, depth_views)
     return out, ev
+
+
+def online_trajectory(run: MapRun) -> tuple[np.ndarray, np.ndarray]:
+    """The per-frame estimates as they were returned (what mapping_node publishes on
+    /semfeat/odometry): ``(stamps_ns (N,) int64, T_map_base (N, 4, 4))`` (m)."""
+    online = [(r.stamp_ns, r.result.T_map_base) for r in run.mapped
+              if r.result.T_map_base is not None]
+    return (np.array([s for s, _ in online], np.int64),
+            np.array([T for _, T in online], np.float64).reshape(-1, 4, 4))
+
+
+def max_altitude_step_m(poses: np.ndarray) -> float | None:
+    """Largest altitude change between consecutive poses (N, 4, 4) (m); None below 2 poses."""
+    z = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)[:, 2, 3]
+    return float(np.abs(np.diff(z)).max()) if len(z) > 1 else None
 
 
 def output_paths(out_dir: Path) -> dict[str, Path]:
@@ -162,10 +186,7 @@ def write_map_outputs(run: MapRun, out_dir: Path, gt: tuple[np.ndarray, np.ndarr
     write_ply(paths['cloud'], cloud)
     stamps, poses = mapper.trajectory()
     write_tum(paths['trajectory'], stamps, poses)
-    online = [(r.stamp_ns, r.result.T_map_base) for r in run.mapped
-              if r.result.T_map_base is not None]
-    write_tum(paths['trajectory_online'], np.array([s for s, _ in online], np.int64),
-              np.array([T for _, T in online]).reshape(-1, 4, 4))
+    write_tum(paths['trajectory_online'], *online_trajectory(run))
     summary = run_summary(run)
     metrics: dict[str, Any] = {'bag': bag}
     ev = None
