@@ -167,6 +167,12 @@ def evaluate_trajectory(est_stamps: np.ndarray, est_poses: np.ndarray, gt_stamps
     return TrajectoryEvaluation(idx, est, gt, sim3, se3, ramp, m)
 
 
+def max_altitude_step_m(poses: np.ndarray) -> float | None:
+    """Largest altitude change between consecutive poses (N, 4, 4) (m); None below 2 poses."""
+    z = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)[:, 2, 3]
+    return float(np.abs(np.diff(z)).max()) if len(z) > 1 else None
+
+
 def gt_levels(gt_poses: np.ndarray, floor_conf: dict | None = None) -> FloorLevels:
     """Levels of the ground-truth trajectory (the mapper's plateau rule and parameters)."""
     c = floor_conf or {}

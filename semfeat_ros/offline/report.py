@@ -28,6 +28,7 @@ from semfeat_ros.offline.metrics import (
     evaluate_trajectory,
     floor_accuracy,
     gt_levels,
+    max_altitude_step_m,
     pitch_of,
     point_errors,
     storey_of,
@@ -157,12 +158,6 @@ def online_trajectory(run: MapRun) -> tuple[np.ndarray, np.ndarray]:
               if r.result.T_map_base is not None]
     return (np.array([s for s, _ in online], np.int64),
             np.array([T for _, T in online], np.float64).reshape(-1, 4, 4))
-
-
-def max_altitude_step_m(poses: np.ndarray) -> float | None:
-    """Largest altitude change between consecutive poses (N, 4, 4) (m); None below 2 poses."""
-    z = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)[:, 2, 3]
-    return float(np.abs(np.diff(z)).max()) if len(z) > 1 else None
 
 
 def output_paths(out_dir: Path) -> dict[str, Path]:

@@ -22,13 +22,14 @@ from semfeat_ros.offline.metrics import (
     RAMP_PITCH_RAD,
     evaluate_trajectory,
     gt_levels,
+    max_altitude_step_m,
     pitch_of,
     surface_accuracy,
     travelled,
 )
 
 
-def _read_outputs(bag: Path) -> dict[str, Any]:
+def read_outputs(bag: Path) -> dict[str, Any]:
     """Estimated poses (odometry), the last keyframe path and cloud, and the message counts of
     the recorded output bag."""
     stamps, poses, counts, cloud, path = [], [], {}, None, None
@@ -67,7 +68,7 @@ def _read_ground_truth(bag: Path) -> tuple[np.ndarray, np.ndarray, list[Any]]:
     return np.array(stamps, np.int64), np.array(poses).reshape(-1, 4, 4), frames
 
 
-def _surfaces(bag: Path, cloud: Any, sim3: Any, gt: tuple[np.ndarray, np.ndarray]
+def cloud_on_surfaces(bag: Path, cloud: Any, sim3: Any, gt: tuple[np.ndarray, np.ndarray]
               ) -> dict[str, Any] | None:
     """Share of the live cloud's points (aligned by the live trajectory's ``sim3``) within
     0.5 m of the bag's rendered range images; None when the bag has none."""
@@ -128,7 +129,7 @@ def _diag_value(diag: dict[str, dict[str, str]], node: str, key: str) -> float |
 
 def write_report(bag: Path, out: Path, run: dict[str, Any]) -> dict[str, Any]:
     """Evaluate the recorded run, write figures into ``out``, print and return the summary."""
-    outputs = _read_outputs(out / 'output_bag')
+    outputs = read_outputs(out / 'output_bag')
     gt_stamps, gt_poses, frames = _read_ground_truth(bag)
     summary: dict[str, Any] = {'bag': str(bag), 'wall_time_s': round(run['wall_s'], 1),
                                'startup_s': round(run['startup_s'], 1),
@@ -147,7 +148,8 @@ def write_report(bag: Path, out: Path, run: dict[str, Any]) -> dict[str, Any]:
         try:
             ev = evaluate_trajectory(outputs['stamps'], outputs['poses'], gt_stamps, gt_poses,
                                      metric=True)
-            summary['trajectory'] = ev.metrics
+            summary['trajectory'] = {**ev.metrics,
+                                     'max_altitude_step_m': max_altitude_step_m(ev.est)}
             levels = gt_levels(gt_poses)
             gt_xyz = gt_poses[:, :3, 3]
             est_xyz = ev.sim3.apply(ev.est[:, :3, 3])
@@ -163,7 +165,8 @@ def write_report(bag: Path, out: Path, run: dict[str, Any]) -> dict[str, Any]:
             ramp_gt = np.abs(pitch_of(gt_poses)) > RAMP_PITCH_RAD
             files['altitude'] = str(plot_altitude(
                 out / 'altitude.png', gt_s, gt_xyz[:, 2], ramp_gt, est_s, est_xyz[:, 2],
-                'Altitude over distance (live pipeline)', levels.altitudes))
+                'Altitude over distance (live pipeline)', levels.altitudes,
+                est_label='/semfeat/odometry (every mapped frame, Sim(3) aligned)'))
         except EvaluationError as exc:
             summary['trajectory'] = {'error': str(exc)}
     path_ev = None
@@ -182,8 +185,8 @@ def write_report(bag: Path, out: Path, run: dict[str, Any]) -> dict[str, Any]:
             'classes': {labels.names[c]: int(n) for c, n in zip(
                 *np.unique(cloud.labels, return_counts=True))}}
         if path_ev is not None and len(cloud.xyz):  # the cloud and the path: one estimate
-            summary['cloud']['surfaces'] = _surfaces(bag, cloud, path_ev.sim3,
-                                                     (gt_stamps, gt_poses))
+            summary['cloud']['surfaces'] = cloud_on_surfaces(bag, cloud, path_ev.sim3,
+                                                             (gt_stamps, gt_poses))
     files.update(_sample_figures(frames, out))
     summary['files'] = files
     _print(summary)
@@ -207,6 +210,10 @@ def _print(s: dict[str, Any]) -> None:
               f'{se3:.3f} m (SE(3), metric), scale {t["scale_sim3"]:.3f}, '
               f'{t["gt_length_m"]:.0f} m driven' if se3 is not None else
               f'  odometry      ATE RMSE {t["ate_sim3_rmse_m"]:.3f} m (Sim(3))')
+        ramp = t.get('ramp_altitude_rmse_sim3_m')
+        print('                ramp altitude RMSE '
+              + ('n/a' if ramp is None else f'{ramp:.3f} m (Sim(3))')
+              + f', largest altitude step between estimates {t["max_altitude_step_m"]:.3f} m')
     elif t:
         print(f'  trajectory    {t.get("error")}')
     else:
