@@ -15,6 +15,7 @@ import numpy as np
 from msg_adapters._flavour import construct, flavour_class, resolve_class
 from msg_adapters.errors import NonFiniteError, ValueRangeError
 from msg_adapters.stamp import make_header, stamp_to_ns
+from semfeat_ros import rotations
 
 POSE_TYPE = 'geometry_msgs/msg/Pose'
 POSE_STAMPED_TYPE = 'geometry_msgs/msg/PoseStamped'
@@ -30,39 +31,15 @@ STATUS_NO_FIX = -1
 
 def quaternion_to_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
     """3x3 rotation of a quaternion (normalised first); a zero quaternion raises."""
-    q = np.array([x, y, z, w], dtype=np.float64)
-    big = float(np.max(np.abs(q)))  # scaled first: huge finite values do not overflow
-    n = float(np.linalg.norm(q / big)) * big if np.isfinite(big) and big > 0 else 0.0
-    if not np.isfinite(n) or n < 1e-9:
-        raise NonFiniteError(f'orientation: quaternion {q.tolist()} has no rotation '
-                             '(zero or non-finite norm)')
-    x, y, z, w = q / n
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    try:
+        return rotations.quaternion_to_matrix(np.array([x, y, z, w], dtype=np.float64))
+    except ValueError as exc:
+        raise NonFiniteError(f'orientation: {exc}') from None
 
 
 def matrix_to_quaternion(R: np.ndarray) -> tuple[float, float, float, float]:
     """(x, y, z, w) of a 3x3 rotation matrix (w >= 0)."""
-    R = np.asarray(R, dtype=np.float64)
-    tr = np.trace(R)
-    if tr > 0:
-        s = 2.0 * np.sqrt(tr + 1.0)
-        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, s / 4]
-    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
-        q = [s / 4, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s, (R[2, 1] - R[1, 2]) / s]
-    elif R[1, 1] > R[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
-        q = [(R[0, 1] + R[1, 0]) / s, s / 4, (R[1, 2] + R[2, 1]) / s, (R[0, 2] - R[2, 0]) / s]
-    else:
-        s = 2.0 * np.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
-        q = [(R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, s / 4, (R[1, 0] - R[0, 1]) / s]
-    q = np.array(q)
-    q /= np.linalg.norm(q)
-    if q[3] < 0:
-        q = -q
+    q = rotations.matrix_to_quaternion(R)
     return float(q[0]), float(q[1]), float(q[2]), float(q[3])
 
 

@@ -18,7 +18,7 @@ from msg_adapters import (
     quaternion_to_matrix,
 )
 from msg_adapters.errors import NonFiniteError, ValueRangeError
-from semfeat_ros.camera import rpy_to_matrix
+from semfeat_ros.rotations import rpy_to_matrix
 
 TS = get_typestore(Stores.ROS2_JAZZY)
 

@@ -7,6 +7,7 @@ import pytest
 from semfeat_ros.camera import FisheyeCamera
 from semfeat_ros.matching import geometry as g
 from semfeat_ros.matching.errors import FeatureInputError, MatchingConfigError
+from semfeat_ros.rotations import rotation_angle, so3_exp
 
 CAM = FisheyeCamera(640, 512, 186.7, 186.7, 320, 256, k=(0.02, -0.004, 0.0005, -0.0001),
                     fov_deg=190)
@@ -22,7 +23,7 @@ def make_scene(rng: np.random.Generator, n: int = 1400, *, out_frac: float = 0.4
     a quarter lies at the left/right rim of the image circle.
     Outliers get the pixel of another point in image 1 (a plausible wrong match).
     """
-    R = g.rotation_from_vector(np.array(rotvec))
+    R = so3_exp(np.array(rotvec))
     tv = np.array(t, dtype=np.float64)
     th = np.arccos(rng.uniform(np.cos(np.radians(94.0)), 1.0, n))
     rim = rng.random(n) < 0.25  # a quarter of the points at the lens rim, 88..94 deg off-axis
@@ -51,7 +52,7 @@ def make_scene(rng: np.random.Generator, n: int = 1400, *, out_frac: float = 0.4
 
 
 def rot_err_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
-    return float(np.degrees(g.rotation_angle(Ra @ Rb.T)))
+    return float(np.degrees(rotation_angle(Ra @ Rb.T)))
 
 
 def t_err_deg(ta: np.ndarray, tb: np.ndarray) -> float:
@@ -63,7 +64,7 @@ def _unit(v: np.ndarray) -> np.ndarray:
 
 
 def _random_problem(rng: np.random.Generator, n: int) -> tuple[np.ndarray, ...]:
-    R = g.rotation_from_vector(rng.normal(size=3) * 0.3)
+    R = so3_exp(rng.normal(size=3) * 0.3)
     t = _unit(rng.normal(size=3))
     X0 = _unit(rng.normal(size=(n, 3))) * rng.uniform(2, 20, (n, 1))
     X1 = X0 @ R.T + 0.5 * t
@@ -109,7 +110,7 @@ def test_triangulated_depth_and_epipolar_angle_values() -> None:
     assert d1[0] == pytest.approx(np.linalg.norm(X0 + t), rel=1e-9)
     # Rotate b1 out of its epipolar plane (normal t x b0 = +-y) by a known angle.
     delta = 0.01
-    tilt = g.rotation_from_vector(np.cross(b1[0], [0.0, 1.0, 0.0]) / np.linalg.norm(
+    tilt = so3_exp(np.cross(b1[0], [0.0, 1.0, 0.0]) / np.linalg.norm(
         np.cross(b1[0], [0.0, 1.0, 0.0])) * delta)
     ang = g.epipolar_angles(g.skew(t) @ R, b0, (tilt @ b1[0])[None])
     assert ang[0] == pytest.approx(delta, rel=1e-6)
@@ -226,7 +227,7 @@ def test_input_validation() -> None:
 def test_refine_pose_improves_a_perturbed_pose() -> None:
     rng = np.random.default_rng(17)
     R, t, b0, b1, gt = make_scene(rng, n=600, out_frac=0.0, noise_px=0.2)
-    R_bad = g.rotation_from_vector(np.array([0.01, -0.01, 0.005])) @ R
+    R_bad = so3_exp(np.array([0.01, -0.01, 0.005])) @ R
     t_bad = _unit(t + np.array([0.05, 0.03, 0.0]))
     Rr, tr = g.refine_pose(R_bad, t_bad, b0, b1, iterations=20)
     assert rot_err_deg(Rr, R) < 0.1 and t_err_deg(tr, t) < 1.0
@@ -235,7 +236,7 @@ def test_refine_pose_improves_a_perturbed_pose() -> None:
 def test_refine_rotation_with_the_translation_known() -> None:
     rng = np.random.default_rng(19)
     R, t, b0, b1, gt = make_scene(rng, n=300, out_frac=0.0, noise_px=0.5)
-    R_bad = g.rotation_from_vector(np.array([0.01, -0.02, 0.005])) @ R
+    R_bad = so3_exp(np.array([0.01, -0.02, 0.005])) @ R
     Rr = g.refine_rotation(R_bad, t, b0, b1)
     assert rot_err_deg(R_bad, R) > 1.0 and rot_err_deg(Rr, R) < 0.1
     assert np.array_equal(g.refine_rotation(R_bad, t, b0[:2], b1[:2]), R_bad)

@@ -15,9 +15,9 @@ from semfeat_ros.matching.errors import (
     MatchingConfigError,
     TrackIdOverflowError,
 )
-from semfeat_ros.matching.geometry import rotation_from_vector
 from semfeat_ros.matching.sequential import FrameFeatures, SequentialMatcher, TrackResult
 from semfeat_ros.matching.tracks import MAX_TRACK_ID, TrackManager
+from semfeat_ros.rotations import so3_exp
 
 CAM = FisheyeCamera(640, 512, 186.7, 186.7, 320, 256, k=(0.02, -0.004, 0.0005, -0.0001),
                     fov_deg=190)
@@ -46,7 +46,7 @@ class World:
 
     def pose(self, k: float, *, speed: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
         """World -> camera rotation and camera centre at frame k (slow yaw while driving)."""
-        R = rotation_from_vector(np.array([0.0, 0.01 * k, 0.0]))
+        R = so3_exp(np.array([0.0, 0.01 * k, 0.0]))
         return R, np.array([0.0, 0.0, speed * k])
 
     def frame(self, k: int, *, stamp_k: int | None = None, pose_k: float | None = None,

@@ -4,9 +4,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from semfeat_ros.rotations import matrix_to_rpy
 from semfeat_ros.sim.config import GarageConfig, load_config, random_config
 from semfeat_ros.sim.errors import SimConfigError
-from semfeat_ros.sim.geometry import camera_pose, matrix_to_rpy
+from semfeat_ros.sim.geometry import camera_pose
 from semfeat_ros.sim.sensors import (
     STATUS_FIX,
     STATUS_GBAS_FIX,

@@ -5,8 +5,9 @@ import numpy as np
 import pytest
 
 from semfeat_ros.camera import load_camera_yaml
+from semfeat_ros.rotations import rpy_to_matrix
 from semfeat_ros.sim.errors import ShapeError
-from semfeat_ros.sim.geometry import make_transform, rpy_to_matrix
+from semfeat_ros.sim.geometry import make_transform
 from semfeat_ros.sim.groundtruth import (
     backproject,
     pixel_bearings,

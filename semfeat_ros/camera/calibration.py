@@ -9,21 +9,11 @@ import yaml
 
 from semfeat_ros.camera.errors import CameraModelError
 from semfeat_ros.camera.models import CameraModel, FisheyeCamera, PinholeCamera
+from semfeat_ros.rotations import rpy_to_matrix
 
 # Optical frame (z forward, x right, y down) expressed in the camera body frame (x forward, y left,
 # z up): the columns are the optical axes.
 R_BODY_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
-
-
-def rpy_to_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """Rotation matrix Rz(yaw) Ry(pitch) Rx(roll) (rad), the REP-103 fixed-axis convention."""
-    cr, sr = np.cos(roll), np.sin(roll)
-    cp, sp = np.cos(pitch), np.sin(pitch)
-    cy, sy = np.cos(yaw), np.sin(yaw)
-    rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
-    ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
-    rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
-    return rz @ ry @ rx
 
 
 @dataclass(frozen=True)

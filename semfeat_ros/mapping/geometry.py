@@ -13,37 +13,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from semfeat_ros.camera.calibration import rpy_to_matrix
-from semfeat_ros.matching.geometry import epipolar_sines, skew
+from semfeat_ros.matching.geometry import epipolar_sines
+from semfeat_ros.rotations import rpy_to_matrix, skew, so3_exp, so3_log
 
 _EPS = 1e-12
-
-
-def so3_exp(w: np.ndarray) -> np.ndarray:
-    """Rotation matrix of the rotation vector ``w`` (rad)."""
-    w = np.asarray(w, dtype=np.float64)
-    theta = float(np.linalg.norm(w))
-    K = skew(w)
-    if theta < 1e-8:
-        return np.eye(3) + K + 0.5 * K @ K
-    return np.eye(3) + np.sin(theta) / theta * K + (1 - np.cos(theta)) / theta**2 * K @ K
-
-
-def so3_log(R: np.ndarray) -> np.ndarray:
-    """Rotation vector (rad) of a rotation matrix."""
-    R = np.asarray(R, dtype=np.float64)
-    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    theta = float(np.arccos(c))
-    if theta < 1e-8:
-        return 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if np.pi - theta < 1e-5:
-        # Near pi: axis from the largest diagonal entry of (R + I) / 2.
-        B = (R + np.eye(3)) / 2.0
-        i = int(np.argmax(np.diag(B)))
-        axis = B[:, i] / np.sqrt(max(B[i, i], _EPS))
-        return axis / np.linalg.norm(axis) * theta
-    return theta / (2 * np.sin(theta)) * np.array(
-        [R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
 
 
 def _left_jacobian(w: np.ndarray) -> np.ndarray:
@@ -387,36 +360,3 @@ def align_yaw(src: np.ndarray, dst: np.ndarray, with_scale: bool
     s = float(np.sum(b * ra) / max(np.sum(a * a), _EPS)) if with_scale else 1.0
     t = md - s * R @ ms
     return s, R, t
-
-
-def matrix_to_quaternion(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion ``(qx, qy, qz, qw)`` of a rotation matrix, ``qw >= 0``."""
-    R = np.asarray(R, dtype=np.float64)
-    tr = np.trace(R)
-    if tr > 0:
-        s = 2.0 * np.sqrt(tr + 1.0)
-        q = np.array([(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s,
-                      (R[1, 0] - R[0, 1]) / s, 0.25 * s])
-    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
-        q = np.array([0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s,
-                      (R[2, 1] - R[1, 2]) / s])
-    elif R[1, 1] > R[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
-        q = np.array([(R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s,
-                      (R[0, 2] - R[2, 0]) / s])
-    else:
-        s = 2.0 * np.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
-        q = np.array([(R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s,
-                      (R[1, 0] - R[0, 1]) / s])
-    q /= np.linalg.norm(q)
-    return -q if q[3] < 0 else q
-
-
-def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a quaternion ``(qx, qy, qz, qw)`` (normalised first)."""
-    x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])

@@ -24,7 +24,7 @@ import numpy as np
 
 from semfeat_ros.mapping.cloud import SemanticCloud
 from semfeat_ros.mapping.errors import MapWriteError, PlyFormatError, TumFormatError
-from semfeat_ros.mapping.geometry import matrix_to_quaternion, quaternion_to_matrix
+from semfeat_ros.rotations import matrix_to_quaternion, quaternion_to_matrix
 
 # PLY property name -> (PLY type, numpy dtype); the order written.
 _PLY_PROPS: tuple[tuple[str, str, str], ...] = (

@@ -20,9 +20,6 @@ from semfeat_ros.mapping.geometry import (
     angle_between,
     fit_plane_ransac,
     se3_inv,
-    skew,
-    so3_exp,
-    so3_log,
     transform_covariance,
     triangulate_bearings,
     vehicle_camera_translation,
@@ -38,6 +35,7 @@ from semfeat_ros.mapping.state import (
 )
 from semfeat_ros.mapping.types import Tracks
 from semfeat_ros.matching.geometry import epipolar_sines, refine_rotation, verify_bearings
+from semfeat_ros.rotations import skew, so3_exp, so3_log
 
 
 def spread(pixels: np.ndarray, priority: np.ndarray, n: int, camera: CameraModel) -> np.ndarray:

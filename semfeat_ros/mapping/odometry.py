@@ -19,13 +19,9 @@ import numpy as np
 
 from semfeat_ros.mapping.geometry import yaw_of
 from semfeat_ros.mapping.types import OdometryDelta
-from semfeat_ros.matching.geometry import rotation_from_vector
+from semfeat_ros.rotations import rot_z
 
 _CAUCHY_C = 4.0  # width (in noise sigmas) of the Cauchy weight of a sample against the fit
-
-
-def _rot_z(a: float) -> np.ndarray:
-    return rotation_from_vector(np.array([0.0, 0.0, a]))
 
 
 class _Regression:
@@ -127,6 +123,6 @@ class OdometryCalibration:
         dpsi = yaw_of(delta.T[:3, :3])
         fix = (dpsi - self.yaw_bias * dt) / (1.0 + self.yaw_scale) - dpsi
         T = np.array(delta.T)
-        T[:3, :3] = T[:3, :3] @ _rot_z(fix)
-        T[:3, 3] = _rot_z(0.5 * fix) @ T[:3, 3] / (1.0 + self.distance_scale)
+        T[:3, :3] = T[:3, :3] @ rot_z(fix)
+        T[:3, 3] = rot_z(0.5 * fix) @ T[:3, 3] / (1.0 + self.distance_scale)
         return OdometryDelta(T, delta.covariance)

@@ -20,9 +20,10 @@ from typing import Any
 import numpy as np
 
 from semfeat_ros.camera import FisheyeCamera
-from semfeat_ros.matching.geometry import rotation_from_vector, verify_bearings
+from semfeat_ros.matching.geometry import verify_bearings
 from semfeat_ros.matching.nn import compatibility_from_labels, match_float
 from semfeat_ros.matching.sequential import FrameFeatures, SequentialMatcher
+from semfeat_ros.rotations import so3_exp
 
 BENCH_CAMERA = FisheyeCamera(640, 512, 186.7, 186.7, 320, 256,
                              k=(0.02, -0.004, 0.0005, -0.0001), fov_deg=190)
@@ -42,7 +43,7 @@ def synthetic_pair(rng: np.random.Generator, n: int, out_frac: float,
                    noise_px: float = 0.5) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """About ``n`` bearing correspondences (b0, b1, inlier mask) for a 0.5 m forward motion."""
     cam = BENCH_CAMERA
-    R = rotation_from_vector(np.array([0.02, 0.1, -0.03]))
+    R = so3_exp(np.array([0.02, 0.1, -0.03]))
     t = np.array([0.05, -0.02, 0.5])
     b0s, b1s = [], []
     while sum(len(b) for b in b0s) < n:

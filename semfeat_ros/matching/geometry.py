@@ -33,6 +33,7 @@ import numpy as np
 
 from semfeat_ros.matching.config import check_range, merge_conf
 from semfeat_ros.matching.errors import FeatureInputError
+from semfeat_ros.rotations import skew, so3_exp
 
 default_conf: dict[str, Any] = {
     # Inlier threshold on the angle between a bearing and its epipolar plane (rad). For an
@@ -124,32 +125,6 @@ class Verification:
 
 # ---------------------------------------------------------------------------------------------
 # small helpers
-
-
-def skew(v: np.ndarray) -> np.ndarray:
-    """(3, 3) cross-product matrix ``[v]x`` of a 3-vector (``(N, 3, 3)`` for ``(N, 3)``)."""
-    v = np.asarray(v, dtype=np.float64)
-    out = np.zeros(v.shape[:-1] + (3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
-    return out
-
-
-def rotation_from_vector(w: np.ndarray) -> np.ndarray:
-    """Rodrigues: rotation matrix of the rotation vector ``w`` (axis * angle, rad)."""
-    w = np.asarray(w, dtype=np.float64)
-    theta = float(np.linalg.norm(w))
-    if theta < 1e-12:
-        return np.eye(3) + skew(w)
-    k = skew(w / theta)
-    return np.eye(3) + math.sin(theta) * k + (1.0 - math.cos(theta)) * (k @ k)
-
-
-def rotation_angle(R: np.ndarray) -> float:
-    """Rotation angle of a rotation matrix (rad, in [0, pi])."""
-    c = (float(np.trace(R)) - 1.0) / 2.0
-    return float(np.arccos(np.clip(c, -1.0, 1.0)))
 
 
 def _check_bearings(b0: np.ndarray, b1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -512,10 +487,10 @@ def _levenberg_marquardt(R: np.ndarray, t: np.ndarray, b0: np.ndarray, b1: np.nd
 
     def apply(p: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if not free_t:
-            return rotation_from_vector(p[:3]) @ R, t
+            return so3_exp(p[:3]) @ R, t
         e1, e2 = _tangent_basis(t)
         tn = t + p[3] * e1 + p[4] * e2
-        return rotation_from_vector(p[:3]) @ R, tn / np.linalg.norm(tn)
+        return so3_exp(p[:3]) @ R, tn / np.linalg.norm(tn)
 
     b0t = np.ascontiguousarray(b0.T)
     b1t = np.ascontiguousarray(b1.T)

@@ -44,8 +44,8 @@ from tqdm import tqdm
 
 from msg_adapters import model_to_camera_info, numpy_to_compressed, numpy_to_image
 from msg_adapters.stamp import make_header
+from semfeat_ros.rotations import matrix_to_quaternion, rpy_to_matrix
 from semfeat_ros.sim.errors import BagWriteError, SimConfigError
-from semfeat_ros.sim.geometry import quaternion_from_matrix, rpy_to_matrix
 from semfeat_ros.sim.scenario import Scenario
 from semfeat_ros.sim.sensors import (
     ANTENNA_OFFSET,
@@ -138,7 +138,7 @@ def _stamp(t: float) -> int:
 
 
 def _pose(ts, T: np.ndarray):
-    q = quaternion_from_matrix(T[:3, :3])
+    q = matrix_to_quaternion(T[:3, :3])
     Point = ts.types['geometry_msgs/msg/Point']
     Quaternion = ts.types['geometry_msgs/msg/Quaternion']
     Pose = ts.types['geometry_msgs/msg/Pose']

@@ -205,7 +205,8 @@ class DatasetConfig:
 def _rig_perturbation(rng: np.random.Generator, T_base_cam: np.ndarray
                       ) -> tuple[np.ndarray, np.ndarray]:
     """A perturbed extrinsic and a vehicle pose offset (lateral, yaw) for one clip."""
-    from semfeat_ros.sim.geometry import make_transform, rpy_to_matrix
+    from semfeat_ros.rotations import rpy_to_matrix
+    from semfeat_ros.sim.geometry import make_transform
 
     d_rpy = rng.normal(0.0, [0.02, 0.05, 0.03])
     dz = rng.uniform(-0.12, 0.12)

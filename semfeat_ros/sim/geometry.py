@@ -15,39 +15,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from semfeat_ros.camera.calibration import rpy_to_matrix
 from semfeat_ros.sim.errors import ShapeError
 
 __all__ = [
-    'camera_pose', 'check_transform', 'invert_transform', 'make_transform', 'matrix_to_rpy',
-    'quaternion_from_matrix', 'rot_x', 'rot_y', 'rot_z', 'rpy_to_matrix', 'transform_points',
+    'camera_pose', 'check_transform', 'invert_transform', 'make_transform', 'transform_points',
 ]
-
-
-def rot_x(a: float) -> np.ndarray:
-    """Rotation matrix about x by ``a`` rad."""
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
-
-
-def rot_y(a: float) -> np.ndarray:
-    """Rotation matrix about y by ``a`` rad."""
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-
-
-def rot_z(a: float) -> np.ndarray:
-    """Rotation matrix about z by ``a`` rad."""
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def matrix_to_rpy(R: np.ndarray) -> tuple[float, float, float]:
-    """Inverse of :func:`rpy_to_matrix` (rad), valid away from pitch = +-90 deg."""
-    pitch = float(np.arcsin(np.clip(-R[2, 0], -1.0, 1.0)))
-    roll = float(np.arctan2(R[2, 1], R[2, 2]))
-    yaw = float(np.arctan2(R[1, 0], R[0, 0]))
-    return roll, pitch, yaw
 
 
 def make_transform(R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -80,27 +52,6 @@ def check_transform(T: np.ndarray, name: str) -> np.ndarray:
 def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Apply a 4x4 transform to (N, 3) points (m)."""
     return points @ T[:3, :3].T + T[:3, 3]
-
-
-def quaternion_from_matrix(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion ``(x, y, z, w)`` (ROS order) of a rotation matrix, with ``w >= 0``."""
-    m = np.asarray(R, dtype=np.float64)
-    tr = m[0, 0] + m[1, 1] + m[2, 2]
-    if tr > 0:
-        s = 2.0 * np.sqrt(tr + 1.0)
-        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
-    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
-        q = [0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
-    elif m[1, 1] > m[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
-        q = [(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
-    else:
-        s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
-        q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
-    q = np.array(q)
-    q /= np.linalg.norm(q)
-    return -q if q[3] < 0 else q
 
 
 def camera_pose(T_map_base: np.ndarray, T_base_cam: np.ndarray) -> np.ndarray:

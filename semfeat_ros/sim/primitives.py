@@ -10,8 +10,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from semfeat_ros.rotations import rot_y, rot_z
 from semfeat_ros.sim.errors import SimConfigError
-from semfeat_ros.sim.geometry import rot_y, rot_z
 
 
 @dataclass

@@ -16,8 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from semfeat_ros.rotations import rpy_to_matrix
 from semfeat_ros.sim.errors import SimConfigError
-from semfeat_ros.sim.geometry import make_transform, rpy_to_matrix
+from semfeat_ros.sim.geometry import make_transform
 from semfeat_ros.sim.layout import LANE, Layout
 from semfeat_ros.sim.polyline import Polyline, offset, round_corners, smooth
 
