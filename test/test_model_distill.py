@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_model_train import _conf, shards  # noqa: F401 - the module's shard fixture
+from test_model_train import shards, tiny_conf  # noqa: F401 - the module's shard fixture
 import torch
 import torch.nn.functional as F  # noqa: N812 - the usual torch alias
 
@@ -126,9 +126,9 @@ def test_training_with_the_teacher_pulls_descriptors_into_its_space(
         shards: Path, tmp_path: Path, teacher: XFeatTeacher) -> None:  # noqa: F811
     net = {'encoder_channels': [8, 16, 16, 24], 'decoder_channels': 16, 'descriptor_dim': 64,
            'seg_channels': 8, 'task_dim': 8, 'mixer_dim': 8}
-    conf = _conf(shards, steps=30, val_every=30, network=net, teacher='xfeat', lr=1e-2,
-                 loss={'distill_desc_weight': 5.0, 'distill_kp_weight': 0.5, 'w_desc': 0.0,
-                       'kp_photo_targets': 0})
+    conf = tiny_conf(shards, steps=30, val_every=30, network=net, teacher='xfeat', lr=1e-2,
+                     loss={'distill_desc_weight': 5.0, 'distill_kp_weight': 0.5, 'w_desc': 0.0,
+                           'kp_photo_targets': 0})
     main(conf, tmp_path / 'run', export=tmp_path / 'export', progress=False)
     with open(tmp_path / 'run' / 'train_log.csv') as f:
         header = f.readline().strip().split(',')

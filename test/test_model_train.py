@@ -53,7 +53,7 @@ def shards(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return d
 
 
-def _conf(shards: Path, **over: object) -> dict:
+def tiny_conf(shards: Path, **over: object) -> dict:
     return {**TINY, 'train_shards': [str(shards / 'train' / '*.npz')],
             'val_shards': [str(shards / 'val' / '*.npz')], **over}
 
@@ -65,7 +65,7 @@ def _losses(out: Path) -> np.ndarray:
 
 def test_training_smoke_loss_goes_down_and_outputs_work(shards: Path, tmp_path: Path) -> None:
     out = tmp_path / 'run'
-    summary = main(_conf(shards), out, export=tmp_path / 'export', progress=False)
+    summary = main(tiny_conf(shards), out, export=tmp_path / 'export', progress=False)
     loss = _losses(out)
     assert len(loss) == 20
     assert loss[-5:].mean() < 0.9 * loss[:5].mean(), loss
@@ -87,7 +87,7 @@ def test_training_smoke_loss_goes_down_and_outputs_work(shards: Path, tmp_path: 
 
 
 def test_resume_reproduces_an_uninterrupted_run(shards: Path, tmp_path: Path) -> None:
-    conf = _conf(shards, steps=6, val_every=6)
+    conf = tiny_conf(shards, steps=6, val_every=6)
     main(conf, tmp_path / 'full', progress=False)
     paused = main(conf, tmp_path / 'chunked', progress=False, stop_after=3)
     assert paused['stopped'] and paused['steps'] == 3
@@ -103,12 +103,12 @@ def test_resume_reproduces_an_uninterrupted_run(shards: Path, tmp_path: Path) ->
 
 
 def test_fine_tune_trains_only_the_named_parameters(shards: Path, tmp_path: Path) -> None:
-    main(_conf(shards, steps=4, val_every=4), tmp_path / 'base', progress=False)
+    main(tiny_conf(shards, steps=4, val_every=4), tmp_path / 'base', progress=False)
     net = {**TINY['network'], 'seg_stride': 2, 'seg_context_blocks': 1}
-    conf = _conf(shards, steps=6, val_every=6, network=net, warmup_fraction=0.0,
-                 init_weights=str(tmp_path / 'base' / 'semfeat.safetensors'),
-                 train_only=['decoder1.seg', 'mixer.seg', 'seg_'],
-                 loss={'seg_loss_stride': 2})
+    conf = tiny_conf(shards, steps=6, val_every=6, network=net, warmup_fraction=0.0,
+                     init_weights=str(tmp_path / 'base' / 'semfeat.safetensors'),
+                     train_only=['decoder1.seg', 'mixer.seg', 'seg_'],
+                     loss={'seg_loss_stride': 2})
     main(conf, tmp_path / 'fine', export=tmp_path / 'export', progress=False)
     base, _ = load_weights(tmp_path / 'base')
     tuned, meta = load_weights(tmp_path / 'fine')
@@ -130,7 +130,7 @@ def test_fine_tune_trains_only_the_named_parameters(shards: Path, tmp_path: Path
     assert '1 dilated inverted-residual block(s) at stride 8' in card
     assert 'inverted-residual block(s) at stride 4' not in card
     with pytest.raises(ModelConfigError, match='match no parameter'):
-        main(_conf(shards, train_only=['seg_nope']), tmp_path / 'o', progress=False)
+        main(tiny_conf(shards, train_only=['seg_nope']), tmp_path / 'o', progress=False)
     with pytest.raises(ModelConfigError, match='other shapes'):
         init_from(SemFeatNet({**TINY['network'], 'seg_channels': 4}),
                   tmp_path / 'base' / 'semfeat.safetensors')
@@ -138,12 +138,12 @@ def test_fine_tune_trains_only_the_named_parameters(shards: Path, tmp_path: Path
 
 def test_keypoint_fine_tune_inserts_the_refinement_and_keeps_the_rest(shards: Path,
                                                                      tmp_path: Path) -> None:
-    main(_conf(shards, steps=4, val_every=4), tmp_path / 'base', progress=False)
+    main(tiny_conf(shards, steps=4, val_every=4), tmp_path / 'base', progress=False)
     net = {**TINY['network'], 'kp_refine_channels': 2}
-    conf = _conf(shards, steps=6, val_every=6, network=net, warmup_fraction=0.0, lr=1e-2,
-                 init_weights=str(tmp_path / 'base' / 'semfeat.safetensors'),
-                 train_only=['decoder1.kp', 'mixer.kp', 'kp_'],
-                 loss={'w_desc': 0.0, 'w_seg': 0.0, 'kp_cell_weight': 1.0})
+    conf = tiny_conf(shards, steps=6, val_every=6, network=net, warmup_fraction=0.0, lr=1e-2,
+                     init_weights=str(tmp_path / 'base' / 'semfeat.safetensors'),
+                     train_only=['decoder1.kp', 'mixer.kp', 'kp_'],
+                     loss={'w_desc': 0.0, 'w_seg': 0.0, 'kp_cell_weight': 1.0})
     main(conf, tmp_path / 'fine', export=tmp_path / 'export', progress=False)
     base, _ = load_weights(tmp_path / 'base')
     tuned, meta = load_weights(tmp_path / 'fine')
@@ -196,17 +196,18 @@ def test_set_train_only_keeps_frozen_batchnorm_statistics() -> None:
 
 def test_cli(shards: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     cfg = tmp_path / 'train.yaml'
-    cfg.write_text(yaml.safe_dump(_conf(shards, steps=2, val_every=2)))
+    cfg.write_text(yaml.safe_dump(tiny_conf(shards, steps=2, val_every=2)))
     assert cli(['--config', str(cfg), '--out', str(tmp_path / 'o'), '--no-progress']) == 0
     assert 'wrote' in capsys.readouterr().out
     assert cli(['--config', str(tmp_path / 'nope.yaml'), '--out', str(tmp_path / 'o')]) == 1
     err = capsys.readouterr().err
     assert err.startswith('semfeat-train: error: config file not found') and err.count('\n') == 1
-    cfg.write_text(yaml.safe_dump({**_conf(shards), 'train_shards': [str(tmp_path / 'x/*.npz')],
+    cfg.write_text(yaml.safe_dump({**tiny_conf(shards),
+                                   'train_shards': [str(tmp_path / 'x/*.npz')],
                                    'data': {**TINY['data'], 'pair_mix': {'synthetic': 1.0}}}))
     assert cli(['--config', str(cfg), '--out', str(tmp_path / 'o')]) == 1
     assert 'no training shards' in capsys.readouterr().err
-    cfg.write_text(yaml.safe_dump({**_conf(shards), 'bogus': 1}))
+    cfg.write_text(yaml.safe_dump({**tiny_conf(shards), 'bogus': 1}))
     assert cli(['--config', str(cfg), '--out', str(tmp_path / 'o')]) == 1
     assert 'unknown training config keys' in capsys.readouterr().err
     cfg.write_text(': not yaml [')
@@ -218,9 +219,9 @@ def test_cli(shards: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -
 
 def test_test_seeds_and_overlap_are_refused(shards: Path, tmp_path: Path) -> None:
     with pytest.raises(DatasetError, match=r'excluded \(test\) seeds \[2\]'):
-        main(_conf(shards, exclude_seeds=[2]), tmp_path / 'o', progress=False)
+        main(tiny_conf(shards, exclude_seeds=[2]), tmp_path / 'o', progress=False)
     with pytest.raises(DatasetError, match='overlap'):
-        main(_conf(shards, val_shards=[str(shards / 'train' / 's1.npz')]), tmp_path / 'o',
+        main(tiny_conf(shards, val_shards=[str(shards / 'train' / 's1.npz')]), tmp_path / 'o',
              progress=False)
 
 
@@ -229,7 +230,7 @@ def test_held_out_shards_rendered_at_another_size_are_refused(shards: Path,
     small = make_shard(tmp_path / 'val' / 's7.npz', n=3, seed=7, cam=CAM.scaled(80, 64))
     with pytest.raises(DatasetError, match=r'validation shards rendered at 80x64 px, training '
                                            r'shards at 160x128 px'):
-        main(_conf(shards, val_shards=[str(small)]), tmp_path / 'o', progress=False)
+        main(tiny_conf(shards, val_shards=[str(small)]), tmp_path / 'o', progress=False)
     assert not (tmp_path / 'o' / 'train_log.csv').exists()
 
 
