@@ -12,7 +12,6 @@ from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-import time
 
 import cv2
 import numpy as np
@@ -232,23 +231,3 @@ class SensorModel:
         out[~valid] = 0
         return out, exposure
 
-
-def benchmark(width: int = 640, height: int = 512, n_frames: int = 10, seed: int = 0,
-              sensor: bool = True, workers: int = 2) -> dict[str, float]:
-    """Render ``n_frames`` frames along the long drive with ``workers`` render threads and
-    return the speed (``fps``, ``ms_per_frame``) measured in this process."""
-    from semfeat_ros.sim.scenario import Scenario  # local import: scenario imports render
-
-    sc = Scenario.create(seed=seed, size=(width, height))
-    sc.renderer.workers = max(1, int(workers))
-    times = np.linspace(0.0, sc.trajectory.duration * 0.95, n_frames)
-    sc.renderer.render(sc.camera_pose(times[0]), times[0])  # warm-up (caches, threads)
-    t0 = time.perf_counter()
-    for k, t in enumerate(times):
-        frame = sc.renderer.render(sc.camera_pose(t), t)
-        if sensor:
-            sc.sensor.expose(frame, sc.camera, k)
-    dt = time.perf_counter() - t0
-    sc.renderer.close()
-    return {'fps': n_frames / dt, 'ms_per_frame': 1000.0 * dt / n_frames,
-            'width': float(width), 'height': float(height), 'frames': float(n_frames)}

@@ -168,7 +168,7 @@ def _run_sub(name: str, args: argparse.Namespace) -> int:
 
         print(f'wrote {write_preview(args.out, args.seed, args.size)}')
     elif name == 'bench':
-        from semfeat_ros.sim.render import benchmark
+        from semfeat_ros.sim.scenario import benchmark
 
         if args.frames < 1:
             raise SimError(f'--frames must be >= 1, got {args.frames}')
