@@ -1,4 +1,4 @@
-"""The three product PointCloud2 layouts of the topic contract (DESIGN.md), builders and readers.
+"""The three product PointCloud2 layouts of the topic contract (README), builders and readers.
 
 Alignment choice: fields in the contract's order, each at the next offset that is a multiple of
 its element size (natural alignment, as a C struct), ``point_step`` rounded up to a multiple of

@@ -31,7 +31,8 @@ def test_module_imports(module: str) -> None:
     ('gtsam', ('semfeat_ros/mapping/',)),
 ])
 def test_library_boundaries(lib: str, allowed: tuple[str, ...]) -> None:
-    """rclpy only in nodes/tools, torch only in model, gtsam only in mapping (DESIGN.md)."""
+    """rclpy only in nodes/tools, torch only in model, gtsam only in mapping
+    (docs/ARCHITECTURE.md, Package boundaries)."""
     pattern = re.compile(rf'^\s*(import {lib}\b|from {lib}\b)', re.MULTILINE)
     offenders = []
     for top in PACKAGES:
