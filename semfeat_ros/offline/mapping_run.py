@@ -3,8 +3,8 @@
 :func:`run_mapping` reads the camera frames (or recorded ``/semfeat/tracks``), wheel odometry
 and GNSS of a bag in recording order and feeds them through
 
-* a front end (:mod:`semfeat_ros.offline.frontends`: the network as feature_node, or an OpenCV
-  baseline),
+* a front end (:mod:`semfeat_ros.offline.frontends`: the network as feature_node, XFeat, or
+  an OpenCV baseline),
 * :class:`~semfeat_ros.matching.sequential.SequentialMatcher` (matcher_node's core), with the
   features converted as they travel in ``/semfeat/features`` (float32 keypoints, bearings from
   the bag's CameraInfo),
@@ -58,13 +58,13 @@ from semfeat_ros.offline.bag import (
 )
 from semfeat_ros.offline.errors import BagFormatError, OfflineConfigError, TopicNotFoundError
 from semfeat_ros.offline.frontends import (
-    OPENCV_KINDS,
+    FRONTEND_KINDS,
     UNLABELED_CLASS,
     make_frontend,
     matcher_frame,
 )
 
-LABEL_SOURCES = ('auto', 'groundtruth', 'none')
+LABEL_SOURCES = ('auto', 'network', 'groundtruth', 'none')
 
 
 @dataclass(frozen=True)
@@ -90,11 +90,13 @@ class Topics:
 class MapConfig:
     """What :func:`run_mapping` runs.
 
-    ``frontend``: 'semfeat' | 'orb' | 'sift'; ``tracks_topic``: map recorded tracks instead
-    (front end and matcher skipped); ``start_s``: skip the first seconds of the recording;
-    ``labels`` (OpenCV front ends): 'auto' = the bag's
-    ground-truth class mask when recorded, else none; ``matcher_conf`` / ``mapper_conf``:
-    overrides of the cores' ``default_conf`` (the nodes' YAML); ``T_base_cam`` (4, 4) m.
+    ``frontend``: 'semfeat' | 'xfeat' | 'sift' | 'orb'; ``tracks_topic``: map recorded tracks
+    instead (front end and matcher skipped); ``start_s``: skip the first seconds of the
+    recording; ``labels`` (xfeat, sift, orb): 'network' = the network's segmentation (as
+    feature_node), 'groundtruth' = the bag's ground-truth class masks, 'auto' = the network
+    when its weights are found, else the ground truth when recorded, else none;
+    ``matcher_conf`` / ``mapper_conf``: overrides of the cores' ``default_conf`` (the nodes'
+    YAML); ``T_base_cam`` (4, 4) m.
     """
 
     T_base_cam: np.ndarray
@@ -218,9 +220,9 @@ def run_mapping(source: BagSource, conf: MapConfig, progress: bool = True,
     topics = conf.topics.absolute()
     if conf.labels not in LABEL_SOURCES:
         raise OfflineConfigError(f'labels: expected one of {LABEL_SOURCES}, got {conf.labels!r}')
-    if conf.frontend not in ('semfeat', *OPENCV_KINDS):
+    if conf.frontend not in FRONTEND_KINDS:
         raise OfflineConfigError(
-            f'frontend: expected semfeat, orb or sift, got {conf.frontend!r}')
+            f'frontend: expected one of {", ".join(FRONTEND_KINDS)}, got {conf.frontend!r}')
     from_tracks = bool(conf.tracks_topic)
     image_topic = None
     if from_tracks:
@@ -235,15 +237,19 @@ def run_mapping(source: BagSource, conf: MapConfig, progress: bool = True,
     use_gt_labels = False
     matcher_conf = dict(conf.matcher_conf)
     if not from_tracks:
-        frontend = make_frontend(conf.frontend, conf.frontend_conf, conf.max_features)
-        if conf.frontend in OPENCV_KINDS:
+        network_labels = {'network': True, 'auto': None}.get(conf.labels, False)
+        frontend = make_frontend(conf.frontend, conf.frontend_conf, conf.max_features,
+                                 network_labels=network_labels)
+        if conf.frontend != 'semfeat':
             has_gt = source.has(topics.gt_semantic, (IMAGE_TYPE,))
             if conf.labels == 'groundtruth' and not has_gt:
                 raise OfflineConfigError(
                     f'labels=groundtruth needs the class-mask topic {topics.gt_semantic!r}, '
                     f'which the bag lacks')
-            use_gt_labels = conf.labels == 'groundtruth' or (conf.labels == 'auto' and has_gt)
+            use_gt_labels = conf.labels == 'groundtruth' or (
+                conf.labels == 'auto' and frontend.labeller is None and has_gt)
             labels_source = ('ground truth ' + topics.gt_semantic if use_gt_labels
+                             else 'network' if frontend.labeller is not None
                              else f'none (every keypoint labelled {UNLABELED_CLASS})')
         matching = dict(matcher_conf.get('matching', {}))
         matching['descriptor_type'] = frontend.descriptor_type

@@ -1,14 +1,17 @@
 """``semfeat-features``: feature_node's front end over a recorded bag, offline (no DDS).
 
-usage: semfeat-features BAG --out OUT [--topic T] [--weights W]
-                        [--config config/feature_node.yaml] [--max-frames N] [--quiet]
+usage: semfeat-features BAG --out OUT [--frontend semfeat|xfeat|sift|orb] [--topic T]
+                        [--weights W] [--config config/feature_node.yaml] [--max-frames N]
+                        [--quiet]
 
-Decodes every camera frame of BAG (raw ``Image`` or ``CompressedImage``), runs the same
-:class:`~semfeat_ros.frontend.SemanticFrontend` as feature_node with the node's parameters
-(read from the node YAML), and writes a new rosbag2 (MCAP) OUT with ``/semfeat/features``
-(PointCloud2, contract layout), ``/semfeat/semantic_mask`` (mono8) -- input header stamps and
-frame ids -- and the CameraInfo passed through. Errors (wrong path, broken bag, missing topic,
-missing weights) are one line on stderr and a non-zero exit status.
+Decodes every camera frame of BAG (raw ``Image`` or ``CompressedImage``), runs the same front
+end as feature_node (:func:`~semfeat_ros.offline.frontends.make_frontend`, keypoints labelled
+by the network's segmentation whatever the front end) with the node's parameters (read from
+the node YAML; ``--frontend`` overrides its ``frontend``), and writes a new rosbag2 (MCAP) OUT
+with ``/semfeat/features`` (PointCloud2, contract layout; ORB's bytes as float32 0..255),
+``/semfeat/semantic_mask`` (mono8) -- input header stamps and frame ids -- and the
+CameraInfo passed through. Errors (wrong path, broken bag, missing topic, missing weights) are
+one line on stderr and a non-zero exit status.
 """
 from __future__ import annotations
 
@@ -28,7 +31,7 @@ from semfeat_ros.offline.features_bag import (
     summary_dict,
     write_features_bag,
 )
-from semfeat_ros.offline.frontends import NetworkFrontend
+from semfeat_ros.offline.frontends import FRONTEND_KINDS, make_frontend
 
 PROG = 'semfeat-features'
 
@@ -38,6 +41,7 @@ class FeaturesToolConfig:
     """Options of ``semfeat-features`` (``config`` = feature_node parameter YAML)."""
 
     config: Path | None = None
+    frontend: str | None = None  # None: the node parameter
     topic: str | None = None
     weights: str | None = None
     max_frames: int | None = None
@@ -53,6 +57,9 @@ def main(conf: FeaturesToolConfig, bag: Path, out: Path) -> dict:
     params = node_config(FeatureNodeConfig, read_node_params(path, 'feature_node'), str(path))
     if conf.max_frames is not None and conf.max_frames < 1:
         raise OfflineConfigError(f'--max-frames must be >= 1, got {conf.max_frames}')
+    if conf.frontend is not None and conf.frontend not in FRONTEND_KINDS:
+        raise OfflineConfigError(
+            f'--frontend: expected one of {", ".join(FRONTEND_KINDS)}, got {conf.frontend!r}')
     check_new_output(out)
     with BagSource(bag) as source:
         bag_conf = FeaturesBagConfig(
@@ -62,7 +69,9 @@ def main(conf: FeaturesToolConfig, bag: Path, out: Path) -> dict:
             fov_deg=params.fov_deg, max_image_pixels=params.max_image_pixels,
             max_frames=conf.max_frames)
         source.image_topic(bag_conf.image_topic, bag_conf.default_image_topic)  # fail early
-        frontend = NetworkFrontend(frontend_config(params, conf.weights))
+        frontend = make_frontend(conf.frontend or params.frontend,
+                                 frontend_config(params, conf.weights), params.max_keypoints,
+                                 network_labels=True)
         summary = write_features_bag(source, out, frontend, bag_conf, progress=conf.progress)
     return summary_dict(summary)
 
@@ -74,6 +83,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('bag', type=Path, help='input rosbag2 directory or .mcap/.db3 file')
     p.add_argument('--out', type=Path, required=True, help='output bag directory (must not '
                    'exist)')
+    p.add_argument('--frontend', choices=FRONTEND_KINDS, default=None,
+                   help="default: the node's frontend parameter (semfeat: the network; xfeat, "
+                   "sift, orb: their keypoints labelled by the network's segmentation)")
     p.add_argument('--topic', default=None, help='camera topic (Image or CompressedImage); '
                    "default: the node's image_topic or its /compressed, whichever is recorded")
     p.add_argument('--weights', default=None, help='network weights (.safetensors); default: '
@@ -87,8 +99,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def cli(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    conf = FeaturesToolConfig(config=args.config, topic=args.topic, weights=args.weights,
-                              max_frames=args.max_frames, progress=not args.quiet)
+    conf = FeaturesToolConfig(config=args.config, frontend=args.frontend, topic=args.topic,
+                              weights=args.weights, max_frames=args.max_frames,
+                              progress=not args.quiet)
     try:
         s = main(conf, args.bag, args.out)
     except (OfflineError, ValueError, OSError) as exc:  # incl. missing / unreadable weights
