@@ -35,4 +35,5 @@ def frame_features(stamp_ns: int, keypoints: np.ndarray, descriptors: np.ndarray
         descriptors=desc[ok],
         labels=np.asarray(labels, dtype=np.uint8)[ok],
         scores=np.asarray(scores, dtype=np.float32)[ok], bearings=bearings[ok],
-        camera_id=camera_id(camera, frame_id), image_width=int(camera.width))
+        camera_id=camera_id(camera, frame_id), image_width=int(camera.width),
+        image_height=int(camera.height))

@@ -1,6 +1,7 @@
 """Sequential matching: descriptor NN matching, geometric verification on bearings, tracks.
 
-numpy + OpenCV only (no rclpy, no torch); the same core runs in ``matcher_node`` and offline.
+numpy + OpenCV (no rclpy; torch only for the learned matcher, imported when it is configured);
+the same core runs in ``matcher_node`` and offline.
 """
 from __future__ import annotations
 

@@ -305,6 +305,19 @@ def match_float(desc0: np.ndarray, desc1: np.ndarray, *, labels0: np.ndarray | N
                    distances=np.sqrt(np.maximum(2.0 - 2.0 * best, 0.0)).astype(np.float32))
 
 
+def bytes_from_floats(desc: np.ndarray) -> np.ndarray:
+    """(N, B) uint8 packed binary descriptors from their float copy (each value a byte 0..255,
+    as they travel in ``/semfeat/features``); raises FeatureInputError for other values."""
+    a = np.asarray(desc)
+    if a.ndim != 2:
+        raise FeatureInputError(f'binary descriptors: expected shape (N, B), got {a.shape}')
+    if a.size and not (np.isfinite(a).all() and (a == np.rint(a)).all()
+                       and a.min() >= 0 and a.max() <= 255):
+        raise FeatureInputError('binary descriptors: expected byte values 0..255 (ORB '
+                                'descriptors as float32); are the features binary?')
+    return a.astype(np.uint8)
+
+
 def hamming_distances(desc0: np.ndarray, desc1: np.ndarray) -> np.ndarray:
     """(N0, N1) float32 Hamming distances (bits) between packed uint8 descriptors."""
     b0 = np.unpackbits(desc0, axis=1).astype(np.float32)

