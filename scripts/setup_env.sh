@@ -15,13 +15,17 @@ if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ] && [ -x "$venv/bin/python"
   echo "$venv/bin"
   exit 0
 fi
-"$py" -c 'import sys; assert sys.version_info[:2] == (3, 11), sys.version' \
-  || { echo "semfeat_ros needs Python 3.11 (set PYTHON=...)" >&2; exit 1; }
+"$py" -c 'import sys; assert sys.version_info[:2] in ((3, 11), (3, 12)), sys.version' \
+  || { echo "semfeat_ros needs Python 3.11 or 3.12 (set PYTHON=...)" >&2; exit 1; }
 echo "setting up $venv (first run takes a minute or two) ..." >&2
 [ -x "$venv/bin/python" ] || "$py" -m venv "$venv"
-# torch==2.13.0 is pinned in requirements.txt: that CPU wheel is on local disk; any other
-# spec would download CUDA builds.
-"$venv/bin/python" -m pip install --quiet --disable-pip-version-check \
+# torch==2.13.0 is pinned in requirements.txt: its CPU wheel for Python 3.11 is on local disk
+# (find-links). For another Python the CPU build comes from PyTorch's CPU index (PyPI's torch
+# pulls the CUDA libraries).
+index=()
+"$venv/bin/python" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))' \
+  || index=(--extra-index-url https://download.pytorch.org/whl/cpu)
+"$venv/bin/python" -m pip install --quiet --disable-pip-version-check "${index[@]}" \
   -r "$repo/requirements.txt" 2> >(grep -v "^WARNING: Location" >&2)
 # Their declared dependencies are traps (a CUDA torchvision, opencv-python over the headless
 # build, gdown, poselib): what they need is in requirements.txt.
