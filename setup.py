@@ -7,12 +7,17 @@ from setuptools import find_packages, setup
 
 PACKAGE = 'semfeat_ros'
 
-# Console scripts: the three nodes (``ros2 run semfeat_ros <node>``) and the offline tools.
+# Console scripts: the three nodes (``ros2 run semfeat_ros <node>``), their managed variants and
+# the offline tools.
 # ament_python installs all of them into lib/semfeat_ros (see setup.cfg), where ros2 run looks.
 CONSOLE_SCRIPTS = [
     'feature_node = semfeat_ros.nodes.feature_node:main',
     'matcher_node = semfeat_ros.nodes.matcher_node:main',
     'mapping_node = semfeat_ros.nodes.mapping_node:main',
+    # managed (lifecycle) variants: configure / activate / deactivate / cleanup
+    'feature_node_managed = semfeat_ros.nodes.managed:feature_main',
+    'matcher_node_managed = semfeat_ros.nodes.managed:matcher_main',
+    'mapping_node_managed = semfeat_ros.nodes.managed:mapping_main',
     'semfeat-eval = semfeat_ros.tools.eval:cli',
     'semfeat-sim = semfeat_ros.tools.sim:cli',
     'semfeat-play = semfeat_ros.tools.play:cli',

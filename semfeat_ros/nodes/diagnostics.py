@@ -44,7 +44,7 @@ class NodeHealth:
         self.compute = LatencyStats()
         self.last_error = ''
         self.extra: dict[str, str] = {}
-        self._pub = self.io.publish(DiagnosticArray, '/diagnostics', 10)
+        self._pub = self.io.publish(DiagnosticArray, '/diagnostics', 10, managed=False)
 
     def on_input(self) -> None:
         self.counters.received += 1

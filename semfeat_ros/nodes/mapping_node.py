@@ -198,8 +198,20 @@ def session_conf(c: MappingNodeConfig) -> SessionConfig:
 class MappingNode(Node):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('mapping_node', **kwargs)
-        self.conf = c = declare_config(self, MappingNodeConfig)
+        self.declare()
+        self.setup()
+        self.subscribe_inputs()
+
+    def declare(self) -> None:
+        """The parameters and their run-time checks (once per node)."""
+        self.conf = declare_config(self, MappingNodeConfig)
         guard_updates(self, MappingNodeConfig)
+
+    def setup(self) -> None:
+        """Everything but the subscriptions, from ``self.conf``: the camera extrinsic,
+        publishers, services, timers and the worker thread (the managed variant's
+        configure)."""
+        c = self.conf
         self.health = NodeHealth(self, input_timeout_s=c.input_timeout_s,
                                  drop_warn_ratio=c.drop_warn_ratio)
         _, extrinsic = load_camera_yaml(c.camera_config or None)
@@ -234,9 +246,30 @@ class MappingNode(Node):
         self._stop = threading.Event()
         self._worker = threading.Thread(target=self._work, daemon=True, name='mapping-worker')
 
+        io = self.health.io
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.pub_cloud = io.publish(PointCloud2, c.cloud_topic, latched)
+        self.pub_odom = io.publish(Odometry, c.odometry_topic, 10)
+        self.pub_path = io.publish(PathMsg, c.path_topic, latched)
+        if c.publish_tf:
+            self.pub_tf = io.publish(TFMessage, '/tf', TF_QOS)
+            self.pub_tf_static = io.publish(TFMessage, '/tf_static', TF_STATIC_PUB_QOS)
+        self.create_service(Trigger, '~/save_map', self._on_save_map)
+        self.create_service(Trigger, '~/reset', self._on_reset)
+        self.create_service(Trigger, '~/pause', self._on_pause)
+        self.create_service(Trigger, '~/resume', self._on_resume)
+        self.create_timer(c.cloud_period_s, self._publish_cloud)
+        self.create_timer(c.diagnostics_period_s, self._publish_diagnostics)
+        self._worker.start()
+        self.get_logger().info(f'mapping_node ready: {c.tracks_topic} -> {c.cloud_topic}')
+
+    def subscribe_inputs(self) -> None:
+        """The subscriptions: odometry, GNSS, CameraInfo, tracks and /tf_static (the managed
+        variant's activate)."""
+        c, io = self.conf, self.health.io
         # odometry and GNSS first: the executor serves ready subscriptions in this order, and a
         # frame waits for the odometry after its stamp (FrameFeeder)
-        io = self.health.io
         if c.use_odometry:
             io.subscribe(Odometry, c.odom_topic, self._on_odom,
                          input_qos(c.input_reliability, 100))
@@ -247,23 +280,7 @@ class MappingNode(Node):
                      input_qos(c.input_reliability), watch='CameraInfo')
         io.subscribe(PointCloud2, c.tracks_topic, self._on_tracks, input_qos('reliable'),
                      watch='tracks')
-        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self.pub_cloud = io.publish(PointCloud2, c.cloud_topic, latched)
-        self.pub_odom = io.publish(Odometry, c.odometry_topic, 10)
-        self.pub_path = io.publish(PathMsg, c.path_topic, latched)
-        if c.publish_tf:
-            self.pub_tf = io.publish(TFMessage, '/tf', TF_QOS)
-            self.pub_tf_static = io.publish(TFMessage, '/tf_static', TF_STATIC_PUB_QOS)
         io.subscribe(TFMessage, '/tf_static', self._on_tf_static, TF_STATIC_SUB_QOS)
-        self.create_service(Trigger, '~/save_map', self._on_save_map)
-        self.create_service(Trigger, '~/reset', self._on_reset)
-        self.create_service(Trigger, '~/pause', self._on_pause)
-        self.create_service(Trigger, '~/resume', self._on_resume)
-        self.create_timer(c.cloud_period_s, self._publish_cloud)
-        self.create_timer(c.diagnostics_period_s, self._publish_diagnostics)
-        self._worker.start()
-        self.get_logger().info(f'mapping_node ready: {c.tracks_topic} -> {c.cloud_topic}')
 
     # -- inputs -----------------------------------------------------------------------------
     def _on_camera_info(self, msg: CameraInfo) -> None:
@@ -622,15 +639,32 @@ class MappingNode(Node):
             resets_deferred=str(sum(g.deferred for g in gates)))
         self.health.publish()
 
-    def destroy_node(self) -> None:
+    def _stop_worker(self) -> None:
         self._stop.set()
         self._wake.set()
         if self._worker.is_alive():
             self._worker.join(timeout=10.0)
+
+    def save_on_exit(self) -> None:
+        """With ``save_on_shutdown``, stop the worker and save the map (the node is going
+        away: destroyed, or the managed variant's shutdown)."""
+        self._stop_worker()
         if self.conf.save_on_shutdown and self.session is not None:
             ok, message = self.save(publish=False)  # the context may be shut down (Ctrl-C)
             log = self.get_logger()
             (log.info if ok else log.error)(f'save on shutdown: {message}')
+
+    def release(self) -> None:
+        """Stop the worker thread and free the map, unsaved (the managed variant's
+        cleanup)."""
+        self._stop_worker()
+        with self._lock:
+            self.session = self.feeder = self.last_result = None
+            self._inbox.clear()
+
+    def destroy_node(self) -> None:
+        if hasattr(self, '_worker'):
+            self.save_on_exit()
         super().destroy_node()
 
 

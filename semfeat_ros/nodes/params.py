@@ -104,10 +104,18 @@ def declare_config(node: Node, cls: type[C]) -> C:
     values raise ``ValueError`` at start-up with the parameter's name.
     """
     hints = typing.get_type_hints(cls)
-    values = {}
     for info in describe(cls):
         ptype = _TYPES[hints[info.name]]
         node.declare_parameter(info.name, info.default, _descriptor(info, ptype))
+    return read_config(node, cls)
+
+
+def read_config(node: Node, cls: type[C]) -> C:
+    """The current values of the (declared) parameters of ``cls``, checked as at start-up
+    (``ValueError`` names the parameter); a managed node's configure reads them anew."""
+    hints = typing.get_type_hints(cls)
+    values = {}
+    for info in describe(cls):
         value = node.get_parameter(info.name).value
         if hints[info.name] is float and isinstance(value, int):
             value = float(value)

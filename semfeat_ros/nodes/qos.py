@@ -9,6 +9,9 @@
 * for the inputs a node cannot work without, the time since their last message: an input
   silent for ``input_timeout_s`` is logged and reported as an ERROR by ``/diagnostics``.
 
+On a managed (lifecycle) node the publishers are lifecycle publishers, which send only while
+the node is active (``/diagnostics`` excepted: it reports an inactive node too).
+
 Sensor inputs default to best effort (:func:`input_qos`): a best-effort subscription matches
 reliable and best-effort publishers alike, so any camera, odometry or GNSS driver connects.
 """
@@ -20,6 +23,7 @@ import time
 from typing import Any
 
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
+from rclpy.lifecycle import LifecycleNodeMixin
 from rclpy.node import Node
 from rclpy.qos import (
     DurabilityPolicy,
@@ -82,12 +86,23 @@ class Endpoints:
             self.inputs[watch] = entry
         return sub
 
-    def publish(self, msg_type: Any, topic: str, qos: QoSProfile | int) -> Any:
+    def publish(self, msg_type: Any, topic: str, qos: QoSProfile | int, *,
+                managed: bool = True) -> Any:
+        """A publisher; on a lifecycle node a lifecycle publisher (sends only while active)
+        unless ``managed`` is False."""
         events = PublisherEventCallbacks(
             incompatible_qos=lambda info: self._on_incompatible(topic, 'publisher', info))
-        return self._node.create_publisher(
+        create = self._node.create_publisher
+        if managed and isinstance(self._node, LifecycleNodeMixin):
+            create = self._node.create_lifecycle_publisher
+        return create(
             msg_type, topic, qos, event_callbacks=events,
             qos_overriding_options=QoSOverridingOptions.with_default_policies())
+
+    def forget_inputs(self) -> None:
+        """Stop watching the inputs (their subscriptions are gone: a managed node's
+        deactivate)."""
+        self.inputs.clear()
 
     def _on_incompatible(self, topic: str, side: str, info: Any) -> None:
         self.incompatible += max(1, int(info.total_count_change))
