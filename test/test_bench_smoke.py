@@ -9,6 +9,7 @@ import time
 import numpy as np
 import pytest
 
+from semfeat_ros.bench import frames, machine, stages, stats
 from semfeat_ros.labels import load_labels
 from semfeat_ros.model.semfeatnet import SemFeatNet
 from semfeat_ros.model.weights_io import save_weights
@@ -27,25 +28,25 @@ def untrained_weights(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_statistics_helpers() -> None:
-    s = bench.summarize([1.0, 2.0, 3.0, 4.0, 100.0])
+    s = stats.summarize([1.0, 2.0, 3.0, 4.0, 100.0])
     assert s['n'] == 5 and s['p50'] == 3.0 and 4.0 < s['p95'] < 100.0
-    assert bench.summarize([])['p50'] is None
-    assert bench.ratio(6.0, 3.0) == 2.0 and bench.ratio(1.0, 0.0) is None
-    assert bench.ratio(None, 1.0) is None
+    assert stats.summarize([])['p50'] is None
+    assert stats.ratio(6.0, 3.0) == 2.0 and stats.ratio(1.0, 0.0) is None
+    assert stats.ratio(None, 1.0) is None
     x = np.array([1.0, 1.0, 50.0, 1.0, 1.0, 2.0, 2.0])
-    assert np.allclose(bench.rolling_median(x, 3), [1, 1, 1, 1, 1, 2, 2])
-    assert bench.rolling_median(x, 1).tolist() == x.tolist()
-    edge = bench.rolling_median(np.array([316.0, 18.0, 18.0, 18.0, 20.0]), 5)
+    assert np.allclose(stats.rolling_median(x, 3), [1, 1, 1, 1, 1, 2, 2])
+    assert stats.rolling_median(x, 1).tolist() == x.tolist()
+    edge = stats.rolling_median(np.array([316.0, 18.0, 18.0, 18.0, 20.0]), 5)
     assert edge.tolist() == [18.0, 18.0, 18.0, 18.0, 18.0]  # shrinking window at the ends
     t = np.linspace(0.0, 10.0, 21)
-    assert bench.linear_slope(t, 3.0 * t + 7.0) == pytest.approx(3.0)
-    assert bench.linear_slope(np.ones(4), np.arange(4.0)) is None
+    assert stats.linear_slope(t, 3.0 * t + 7.0) == pytest.approx(3.0)
+    assert stats.linear_slope(np.ones(4), np.arange(4.0)) is None
 
 
 def test_proc_sampler_reads_this_process() -> None:
-    cpu0, rss = bench.read_proc(os.getpid())
+    cpu0, rss = machine.read_proc(os.getpid())
     assert cpu0 > 0.0 and rss > 10.0
-    with bench.ProcSampler(period_s=0.05) as sampler:
+    with machine.ProcSampler(period_s=0.05) as sampler:
         t_end = time.perf_counter() + 0.3
         while time.perf_counter() < t_end:  # keep one core busy
             np.sort(np.random.default_rng(0).random(20_000))
@@ -54,11 +55,11 @@ def test_proc_sampler_reads_this_process() -> None:
     assert all(r > 10.0 for r in sampler.rss_mb)
     assert max(sampler.cpu_pct) > 0.0
     with pytest.raises(OSError):
-        bench.read_proc(2 ** 22 + 12345)  # above the kernel's pid_max
+        machine.read_proc(2 ** 22 + 12345)  # above the kernel's pid_max
 
 
 def test_forward_variants_tiny(untrained_weights: Path) -> None:
-    res = bench.measure_forward(str(untrained_weights), (64, 64), repeats=1, warmup=0)
+    res = stages.measure_forward(str(untrained_weights), (64, 64), repeats=1, warmup=0)
     assert set(res) == {'fp32', 'fp32_fused_channels_last', 'bf16_channels_last', 'onnxruntime'}
     assert all(v > 0.0 for v in res.values())
 
@@ -112,7 +113,7 @@ def test_cli_smoke_writes_document_figures_and_results(
     for name, st in res['stages'].items():
         assert st['samples'] == 3
         s = st['stats']
-        for fe in bench.FRONTENDS:
+        for fe in stages.FRONTENDS:
             for stage in ('decode', 'features', 'total'):
                 assert s[fe][stage]['n'] >= 1 and s[fe][stage]['p50'] > 0.0, (name, fe, stage)
         assert s['semfeat']['network']['p50'] > 0.0 and s['semfeat']['post']['n'] == 3
@@ -122,7 +123,7 @@ def test_cli_smoke_writes_document_figures_and_results(
         assert st['ratios']['features']['sift'] == pytest.approx(
             s['semfeat']['features']['p50'] / s['sift']['features']['p50'])
     e2e = res['end_to_end']
-    assert set(e2e) == set(bench.FRONTENDS)
+    assert set(e2e) == set(stages.FRONTENDS)
     assert all(e2e[fe]['frames'] == 3 and e2e[fe]['sustained_hz'] > 0 for fe in e2e)
     soak = res['soak']
     assert soak['frames'] >= 1 and soak['samples'] >= 2
@@ -146,6 +147,6 @@ def test_cli_smoke_writes_document_figures_and_results(
     # the rendered frames are cached and reused (no re-rendering)
     cache = out / 'frames_160x128'
     stamps = {p.name: p.stat().st_mtime_ns for p in cache.iterdir()}
-    fs = bench.rendered_frames(out.resolve(), 2, (160, 128), 0, progress=False)
+    fs = frames.rendered_frames(out.resolve(), 2, (160, 128), 0, progress=False)
     assert {p.name: p.stat().st_mtime_ns for p in cache.iterdir()} == stamps
     assert len(fs.msgs) == 2 and fs.camera.width == 160
