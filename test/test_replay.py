@@ -92,23 +92,32 @@ def test_clean_replay_diagnostics(live: dict) -> None:
 
 def test_tf_chain_map_odom_base_camera(live: dict) -> None:
     """/tf and /tf_static over DDS: map -> odom -> base_link at the image stamps of the mapped
-    frames, composing to /semfeat/odometry's pose, and base_link -> camera_front_optical (the
-    CameraInfo's frame) from camera_config, latched."""
+    frames, composing to /semfeat/odometry's pose, base_link -> camera_front_optical (the
+    CameraInfo's frame) from camera_config, latched, and once the bag's GNSS aligned the map
+    one fixed enu -> map (rotation about z) in the same messages."""
     from semfeat_ros.camera import load_camera_yaml
     from semfeat_ros.nodes.tf import transform_to_matrix
 
-    tf, static = {}, []
+    tf, static, enu = {}, [], []
     with BagSource(live['out'] / 'output_bag') as src:
         for m in src.messages(['/tf', '/tf_static']):
             if m.topic == '/tf_static':
                 static.append(m.msg)
                 continue
-            assert [(t.header.frame_id, t.child_frame_id) for t in m.msg.transforms] == [
-                ('map', 'odom'), ('odom', 'base_link')]
-            a, b = m.msg.transforms
+            pairs = [(t.header.frame_id, t.child_frame_id) for t in m.msg.transforms]
+            if enu:  # enu -> map stays once the map is aligned
+                assert pairs[0] == ('enu', 'map'), pairs
+            if pairs[0] == ('enu', 'map'):
+                enu.append(transform_to_matrix(m.msg.transforms[0]))
+                pairs = pairs[1:]
+            assert pairs == [('map', 'odom'), ('odom', 'base_link')]
+            a, b = m.msg.transforms[-2:]
             assert a.header.stamp == b.header.stamp
             tf[a.header.stamp.sec * 10**9 + a.header.stamp.nanosec] = (
                 transform_to_matrix(a) @ transform_to_matrix(b))
+    assert len(enu) >= 0.2 * len(tf), (len(enu), len(tf))
+    np.testing.assert_allclose(enu, np.broadcast_to(enu[0], np.shape(enu)), atol=1e-6)
+    np.testing.assert_allclose(enu[0][2, :3], [0.0, 0.0, 1.0], atol=1e-9)
     assert len(static) == 1
     (cam,) = static[0].transforms
     assert (cam.header.frame_id, cam.child_frame_id) == ('base_link', 'camera_front_optical')

@@ -11,9 +11,11 @@ still buffered).
 
 TF (REP-105): every mapped frame broadcasts, stamped with its image time, map -> odom and
 odom -> base_link (the wheel odometry interpolated at that stamp) once wheel odometry is
-received, map -> base_link before. The base_link -> camera extrinsic of a new map comes from
-/tf_static when another publisher (a vehicle's URDF, possibly through intermediate frames)
-carries it, else from ``camera_config``, which is then broadcast on /tf_static. The service
+received, map -> base_link before. The map frame never jumps: once GNSS fixes align it, the
+frame also carries enu -> map (the ENU frame around the first fix is map's parent). The
+base_link -> camera extrinsic of a new map comes from /tf_static when another publisher (a
+vehicle's URDF, possibly through intermediate frames) carries it, else from ``camera_config``,
+which is then broadcast on /tf_static. The service
 ``~/save_map`` (std_srvs/Trigger) writes ``cloud.ply`` (x y z rgb label floor landmark_id n_obs),
 ``trajectory.tum`` and their manifest ``map.json`` as one unit into ``output_dir``
 (:func:`~semfeat_ros.mapping.io.save_map`: temporary files renamed into place, symlinks
@@ -102,6 +104,9 @@ class MappingNodeConfig:
     path_topic: str = param('semfeat/path', 'Keyframe trajectory', read_only=True)
     map_frame: str = param('map', 'Frame of the map (z up)', read_only=True)
     odom_frame: str = param('odom', 'Frame of the wheel odometry (REP-105)', read_only=True)
+    enu_frame: str = param('enu', 'East-north-up frame of the GNSS fixes, origin at the first '
+                           'fix (the datum); parent of map on /tf once GNSS aligned the map',
+                           read_only=True)
     base_frame: str = param('base_link', 'Vehicle frame', read_only=True)
     camera_frame: str = param('', 'Optical frame of the camera on /tf_static; empty = the '
                               "CameraInfo's frame_id", read_only=True)
@@ -488,7 +493,8 @@ class MappingNode(Node):
                 T_odom_base = self.session.odometry_at(f.tracks.stamp_ns)
             out.append((f, path, T_odom_base))
         state = {'calibration': self.session.mapper.odometry_calibration,
-                 'missing': dict(self.session.odometry_missing)} if out else {}
+                 'missing': dict(self.session.odometry_missing),
+                 'map_in_enu': self.session.mapper.map_in_enu} if out else {}
         return out, state
 
     def _publish_frames(self, fed: list[tuple], state: dict[str, Any]) -> None:
@@ -498,7 +504,8 @@ class MappingNode(Node):
             else:
                 self._publish_frame(f, path)
                 if self.conf.publish_tf and f.result.T_map_base is not None:
-                    self._broadcast(f.result.T_map_base, T_odom_base, f.tracks.stamp_ns)
+                    self._broadcast(f.result.T_map_base, T_odom_base, f.tracks.stamp_ns,
+                                    state.get('map_in_enu'))
         if state:
             cal, missing = state['calibration'], state['missing']
             self.health.extra.update(
@@ -527,11 +534,14 @@ class MappingNode(Node):
                                  update_ms=f'{result.update_ms:.1f}')
 
     def _broadcast(self, T_map_base: np.ndarray, T_odom_base: np.ndarray | None,
-                   stamp_ns: int) -> None:
+                   stamp_ns: int, T_enu_map: np.ndarray | None = None) -> None:
         """/tf at the frame's image stamp: map -> odom (and odom -> base_link) once wheel
         odometry is received, map -> base_link before; a frame without odometry at its stamp
-        after that is skipped and counted (base_link keeps one parent)."""
+        after that is skipped and counted (base_link keeps one parent). Once GNSS aligned the
+        map (``T_enu_map``, the map frame's pose in ENU), enu -> map too."""
         c = self.conf
+        enu = [] if T_enu_map is None else [
+            transform_msg(T_enu_map, c.enu_frame, c.map_frame, stamp_ns)]
         if T_odom_base is not None:
             tfs = [transform_msg(T_map_base @ np.linalg.inv(T_odom_base), c.map_frame,
                                  c.odom_frame, stamp_ns)]
@@ -543,7 +553,7 @@ class MappingNode(Node):
             self._tf_counts['skipped'] += 1
             self.health.extra['tf_skipped_no_odometry'] = str(self._tf_counts['skipped'])
             return
-        self.pub_tf.publish(TFMessage(transforms=tfs))
+        self.pub_tf.publish(TFMessage(transforms=enu + tfs))
         self._tf_counts['published'] += 1
         self.health.extra['tf_published'] = str(self._tf_counts['published'])
 
