@@ -22,6 +22,7 @@ from semfeat_ros.geodesy import geodetic_to_enu
 from semfeat_ros.mapping.errors import MapperInputError, MappingError
 from semfeat_ros.mapping.mapper import Mapper
 from semfeat_ros.mapping.types import GnssFix, MapperResult, OdometryDelta, Tracks
+from semfeat_ros.rotations import rotation_angle, so3_exp, so3_log
 
 
 @dataclass(frozen=True)
@@ -42,32 +43,10 @@ class SessionConfig:
     gnss_buffer: int = 50  # fixes kept for frames still to come (the newest)
 
 
-def _rotvec(R: np.ndarray) -> np.ndarray:
-    """Rotation vector (rad) of a 3x3 rotation."""
-    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    angle = np.arccos(c)
-    if angle < 1e-9:
-        return np.zeros(3)
-    axis = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if np.pi - angle < 1e-6:  # 180 degrees: axis from the symmetric part
-        w, v = np.linalg.eigh((R + np.eye(3)) / 2.0)
-        return v[:, np.argmax(w)] * angle
-    return axis / (2.0 * np.sin(angle)) * angle
-
-
-def _expmap(w: np.ndarray) -> np.ndarray:
-    angle = np.linalg.norm(w)
-    if angle < 1e-12:
-        return np.eye(3)
-    k = w / angle
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
-
-
 def interpolate_pose(T0: np.ndarray, T1: np.ndarray, a: float) -> np.ndarray:
     """Pose a fraction ``a`` in [0, 1] of the way from ``T0`` to ``T1`` (4x4)."""
     T = np.eye(4)
-    T[:3, :3] = T0[:3, :3] @ _expmap(a * _rotvec(T0[:3, :3].T @ T1[:3, :3]))
+    T[:3, :3] = T0[:3, :3] @ so3_exp(a * so3_log(T0[:3, :3].T @ T1[:3, :3]))
     T[:3, 3] = (1 - a) * T0[:3, 3] + a * T1[:3, 3]
     return T
 
@@ -167,7 +146,7 @@ class MappingSession:
         T = np.linalg.inv(prev) @ T_now
         c = self.conf
         dist = float(np.linalg.norm(T[:3, 3]))
-        angle = float(np.linalg.norm(_rotvec(T[:3, :3])))
+        angle = rotation_angle(T[:3, :3])
         s_rot = max(c.odom_sigma_floor, c.odom_sigma_rad_per_rad * angle
                     + c.odom_sigma_rad_per_m * dist)
         s_trans = max(c.odom_sigma_floor, c.odom_sigma_per_m * dist)
