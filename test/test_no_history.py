@@ -35,10 +35,6 @@ HISTORY = re.compile(r"""
 
 PRINCIPAL_POINT = re.compile(r'\bu0\b')  # v0 beside u0: the image centre of a camera file
 
-# Findings in files that change only together with the network training they configure: each
-# entry must still match (a fixed line fails the test until its entry is removed here too).
-DEFERRED = {('config/distill.yaml', "v9's descriptor space")}
-
 
 def text_files() -> list[Path]:
     files = []
@@ -126,10 +122,5 @@ def test_prose_of_python_is_comments_and_strings() -> None:
 
 
 def test_no_history_in_docs_code_configs_tests() -> None:
-    found = findings()
-    deferred_hits = {(rel, d) for rel, _, _, line in found for f, d in DEFERRED
-                     if rel == f and d in line}
-    assert deferred_hits == DEFERRED, f'fixed, drop from DEFERRED: {DEFERRED - deferred_hits}'
-    left = [f'{rel}:{n}: {mark!r} in {line[:120]}' for rel, n, mark, line in found
-            if not any(rel == f and d in line for f, d in DEFERRED)]
+    left = [f'{rel}:{n}: {mark!r} in {line[:120]}' for rel, n, mark, line in findings()]
     assert not left, 'history told in the tree (say what is, not what was):\n' + '\n'.join(left)
