@@ -3,14 +3,16 @@
 One status per node, its hardware_id the node's fully qualified name. Level: ERROR while an
 input the node needs is silent for ``input_timeout_s``; WARN on processing errors, rejected
 inputs, more than ``drop_warn_ratio`` of the frames received since the previous report dropped,
-incompatible QoS, or no output yet; OK otherwise.
+incompatible QoS, or no output yet; OK otherwise. A node adds its own conditions
+(:attr:`NodeHealth.conditions`, e.g. mapping_node's :class:`SolverHealth`): the status takes
+a condition's level when it is higher, and lists every ERROR.
 """
 from __future__ import annotations
 
 from collections.abc import Callable
 import math
 import time
-from typing import NoReturn
+from typing import NoReturn, Protocol
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 import rclpy
@@ -20,6 +22,91 @@ from rclpy.node import Node
 
 from semfeat_ros.nodes.qos import Endpoints
 from semfeat_ros.runtime import Counters, LatencyStats, RateMeter
+
+
+class Condition(Protocol):
+    """A node-specific part of the status."""
+
+    def level(self) -> tuple[int, str] | None:
+        """(DiagnosticStatus level, message) while the condition holds, else None."""
+
+    def values(self) -> dict[str, str]:
+        """Key/values added to the status."""
+
+
+class SolverHealth:
+    """The mapper's solver, judged from its per-frame results (``MapperResult.state`` and
+    ``.events``, see :mod:`semfeat_ros.mapping.backend`).
+
+    Level: ERROR while the mapper is 'lost' (poses are predictions until it re-initialises), and
+    for ``error_frames`` frames from one whose failed update could not be recovered (event
+    'window_reset': the window restarted from the newest keyframe, or 'smoother_reset': the
+    smoother started over); WARN for ``warn_frames`` frames from any failed update (event
+    'update_failed: ...'; a recovered one rebuilt the smoother, 'update_recovered'); OK
+    otherwise. Frames are counted, not seconds, so a replay at any rate reads the same.
+    :meth:`new_map` ends both holds (the failure belonged to the map that was discarded); the
+    counters run from start-up, over map resets.
+    """
+
+    def __init__(self, error_frames: int, warn_frames: int) -> None:
+        self.error_frames = error_frames
+        self.warn_frames = warn_frames
+        self.counts = {'update_failures': 0, 'recoveries': 0, 'window_resets': 0,
+                       'smoother_resets': 0, 'tracking_lost': 0}
+        self.state = ''
+        self.last_failure = ''
+        self._frames = 0
+        self._failed_at: int | None = None  # frame number of the last failed update
+        self._unrecovered_at: int | None = None  # ... of the last window or smoother reset
+
+    def on_result(self, state: str, events: tuple[str, ...]) -> None:
+        """One mapped frame: the mapper's state after it and the events it reported."""
+        self._frames += 1
+        self.state = state
+        failures = [e for e in events if e.startswith(('update_failed', 'rebuild_failed',
+                                                       'smoother_reset'))]
+        self.counts['update_failures'] += sum(e.startswith('update_failed') for e in events)
+        self.counts['recoveries'] += events.count('update_recovered')
+        self.counts['window_resets'] += events.count('window_reset')
+        self.counts['smoother_resets'] += sum(e.startswith('smoother_reset') for e in events)
+        self.counts['tracking_lost'] += events.count('tracking_lost')
+        if failures:
+            self.last_failure = failures[0]
+            self._failed_at = self._frames
+        if 'window_reset' in events:
+            self._unrecovered_at = self._failed_at = self._frames
+            if not failures:
+                self.last_failure = 'window_reset'
+
+    def new_map(self) -> None:
+        """The map was reset: earlier failures no longer hold the level."""
+        self._failed_at = self._unrecovered_at = None
+        self.state = ''
+
+    def _within(self, at: int | None, frames: int) -> int | None:
+        """Frames since ``at`` when fewer than ``frames`` (the frame itself is 0)."""
+        if at is None:
+            return None
+        ago = self._frames - at
+        return ago if ago < frames else None
+
+    def level(self) -> tuple[int, str] | None:
+        if self.state == 'lost':
+            return (DiagnosticStatus.ERROR,
+                    'mapper lost: poses are predictions until it re-initialises')
+        ago = self._within(self._unrecovered_at, self.error_frames)
+        if ago is not None:
+            return (DiagnosticStatus.ERROR, f'solver failed {ago} frames ago and could not be '
+                    f'recovered: the window was reset ({self.last_failure})')
+        ago = self._within(self._failed_at, self.warn_frames)
+        if ago is not None:
+            return (DiagnosticStatus.WARN,
+                    f'solver update failed {ago} frames ago ({self.last_failure})')
+        return None
+
+    def values(self) -> dict[str, str]:
+        return {**{f'solver_{k}': str(v) for k, v in self.counts.items()},
+                'solver_last_failure': self.last_failure}
 
 
 class NodeHealth:
@@ -44,6 +131,7 @@ class NodeHealth:
         self.compute = LatencyStats()
         self.last_error = ''
         self.extra: dict[str, str] = {}
+        self.conditions: list[Condition] = []
         self._pub = self.io.publish(DiagnosticArray, '/diagnostics', 10, managed=False)
 
     def on_input(self) -> None:
@@ -101,8 +189,15 @@ class NodeHealth:
             if c.waiting:  # e.g. a wrong camera_info topic: say so where operators look
                 message += f': {c.waiting} inputs waiting for CameraInfo'
         silent = self.io.silent()
-        if silent:
-            level, message = DiagnosticStatus.ERROR, '; '.join(silent)
+        errors = list(silent)
+        for condition in self.conditions:
+            found = condition.level()
+            if found is not None and found[0] == DiagnosticStatus.ERROR:
+                errors.append(found[1])
+            elif found is not None and found[0] > level:
+                level, message = found
+        if errors:
+            level, message = DiagnosticStatus.ERROR, '; '.join(errors)
 
         def fmt(x: float) -> str:
             return 'nan' if math.isnan(x) else f'{x:.4f}'
@@ -117,6 +212,7 @@ class NodeHealth:
             'frames_waiting_camera_info': str(c.waiting),
             'processing_errors': str(c.errors), 'last_error': self.last_error,
             'qos_incompatible': str(self.io.incompatible), 'silent_inputs': str(len(silent)),
+            **{k: v for condition in self.conditions for k, v in condition.values().items()},
             **self.extra,
         }
         return DiagnosticStatus(

@@ -36,6 +36,21 @@ map is saved into ``<output_dir>/before_reset``. ``/diagnostics`` reports the re
 (``resets_camera``, ``resets_time``), the ignored outliers and the deferred resets. The wheel
 odometry stream is guarded the same way: a lone older stamp is ignored, a persisting one
 restarts its buffer.
+
+Solver health: the mapper recovers a failed iSAM2 update by rebuilding the smoother, or, when
+that fails too, by resetting the window to the newest keyframe (the map is kept).
+``/diagnostics`` is ERROR for ``solver_error_frames`` mapped frames from such a window reset and
+while the mapper is lost, WARN for ``solver_warn_frames`` frames from any failed update
+(:class:`~semfeat_ros.nodes.diagnostics.SolverHealth`), and reports the counts since start-up
+(``solver_update_failures``, ``solver_recoveries``, ``solver_window_resets``,
+``solver_smoother_resets``, ``solver_tracking_lost``) and the last failure.
+
+Run-time parameter updates (``ros2 param set``): the keyframe thresholds (``kf_parallax_deg``,
+``kf_max_distance_m``; the mapper reads them every frame), ``max_backlog``, the periods of
+``/semantic_cloud`` and ``/diagnostics`` and the diagnostics thresholds take effect from the
+next frame or timer tick; every other parameter is read-only (topics, frames, the QoS, the
+smoother's window and noise models are built into the subscriptions or the map when it starts)
+and a set is refused with rclpy's reason; values outside their range are refused naming it.
 """
 from __future__ import annotations
 
@@ -72,7 +87,7 @@ from semfeat_ros.mapping.errors import MappingError, MapWriteError
 from semfeat_ros.mapping.io import save_map
 from semfeat_ros.mapping.session import FedFrame, FrameFeeder, MappingSession, SessionConfig
 from semfeat_ros.mapping.types import Tracks
-from semfeat_ros.nodes.diagnostics import NodeHealth, spin_node
+from semfeat_ros.nodes.diagnostics import NodeHealth, SolverHealth, spin_node
 from semfeat_ros.nodes.params import declare_config, guard_updates, param
 from semfeat_ros.nodes.qos import input_qos
 from semfeat_ros.nodes.tf import (
@@ -138,10 +153,10 @@ class MappingNodeConfig:
                                           read_only=True)
     window_keyframes: int = param(15, 'Keyframes in the fixed-lag smoother', range=(3, 200),
                                   read_only=True)
-    kf_parallax_deg: float = param(4.0, 'Parallax that makes a new keyframe (deg)',
-                                   range=(0.1, 45.0), read_only=True)
-    kf_max_distance_m: float = param(1.0, 'Distance that makes a new keyframe (m)',
-                                     range=(0.05, 100.0), read_only=True)
+    kf_parallax_deg: float = param(4.0, 'Parallax that makes a new keyframe (deg); may change '
+                                   'at run time', range=(0.1, 45.0))
+    kf_max_distance_m: float = param(1.0, 'Distance that makes a new keyframe (m); may change '
+                                     'at run time', range=(0.05, 100.0))
     bearing_sigma_px: float = param(2.5, 'Keypoint noise (px) of the front end',
                                     range=(0.05, 20.0), read_only=True)
     voxel_size_m: float = param(0.1, 'Voxel size bounding the published map (m)',
@@ -157,9 +172,10 @@ class MappingNodeConfig:
                                'stamp (s of stream time); frames are mapped once it is in',
                                range=(0.0, 10.0), read_only=True)
     max_backlog: int = param(50, 'Frames that may wait for the mapper; beyond that the '
-                             'oldest are dropped and counted', range=(1, 10000), read_only=True)
-    cloud_period_s: float = param(1.0, 'Period of /semantic_cloud (s): the full map, latched',
-                                  range=(0.05, 3600.0), read_only=True)
+                             'oldest are dropped and counted; may change at run time',
+                             range=(1, 10000))
+    cloud_period_s: float = param(1.0, 'Period of /semantic_cloud (s): the full map, latched; '
+                                  'may change at run time', range=(0.05, 3600.0))
     change_confirm_messages: int = param(
         3, 'Consecutive messages that make a change accepted: a CameraInfo of another camera, '
         'or tracks (odometry) stamped before the newest one (a bag loop); a shorter run is '
@@ -174,13 +190,26 @@ class MappingNodeConfig:
                                    'down (Ctrl-C, ros2 launch stop)', read_only=True)
     input_timeout_s: float = param(
         5.0, 'An input the node needs (tracks, CameraInfo) silent this long is logged and '
-        'reported as ERROR on /diagnostics (s); 0 = off',
-        range=(0.0, 3600.0), read_only=True)
+        'reported as ERROR on /diagnostics (s); 0 = off; may change at run time',
+        range=(0.0, 3600.0))
     drop_warn_ratio: float = param(0.2, 'Share of the frames received since the previous '
-                                   '/diagnostics report that, dropped, makes it WARN',
-                                   range=(0.0, 1.0), read_only=True)
-    diagnostics_period_s: float = param(1.0, 'Period of /diagnostics (s)', range=(0.1, 60.0),
-                                        read_only=True)
+                                   '/diagnostics report that, dropped, makes it WARN; may '
+                                   'change at run time', range=(0.0, 1.0))
+    solver_error_frames: int = param(
+        50, '/diagnostics is ERROR for this many mapped frames from one whose failed solver '
+        'update could not be recovered (the window was reset), and while the mapper is lost; '
+        'may change at run time', range=(1, 100000))
+    solver_warn_frames: int = param(
+        300, '/diagnostics is WARN for this many mapped frames from any failed solver update '
+        '(recovered by rebuilding the smoother or not); may change at run time',
+        range=(1, 100000))
+    diagnostics_period_s: float = param(1.0, 'Period of /diagnostics (s); may change at run '
+                                        'time', range=(0.1, 60.0))
+
+
+# parameters the mapper reads anew for every frame: the key of its conf
+MAPPER_RUNTIME_PARAMS = {'kf_parallax_deg': 'kf_parallax_deg',
+                         'kf_max_distance_m': 'kf_max_distance_m'}
 
 
 def mapper_conf(c: MappingNodeConfig) -> dict[str, Any]:
@@ -211,6 +240,34 @@ class MappingNode(Node):
         """The parameters and their run-time checks (once per node)."""
         self.conf = declare_config(self, MappingNodeConfig)
         guard_updates(self, MappingNodeConfig)
+        self.add_post_set_parameters_callback(self._apply_parameters)
+
+    def _apply_parameters(self, params: list[Any]) -> None:
+        """Accepted run-time changes (ranges checked, read-only ones refused before) take
+        effect from the next frame or timer tick: the mapper's keyframe thresholds (also in a
+        map started later), the backlog bound, the timer periods and the diagnostics
+        thresholds. This runs on the executor; the mapper's conf is changed under the worker's
+        lock, between frames. Unconfigured (managed variant), configure reads them."""
+        for p in params:
+            setattr(self.conf, p.name, p.value)
+            self.get_logger().info(f'{p.name} = {p.value}')
+        if not hasattr(self, 'health'):  # not configured yet
+            return
+        names = {p.name for p in params}
+        with self._lock:
+            for name in names & MAPPER_RUNTIME_PARAMS.keys():
+                if self.session is not None:
+                    self.session.mapper.conf[MAPPER_RUNTIME_PARAMS[name]] = getattr(
+                        self.conf, name)
+        c, live = self.conf, self.timers  # the managed variant's cleanup destroys the timers
+        if 'cloud_period_s' in names and self._cloud_timer in live:
+            self._cloud_timer.timer_period_ns = int(c.cloud_period_s * 1e9)
+        if 'diagnostics_period_s' in names and self._diagnostics_timer in live:
+            self._diagnostics_timer.timer_period_ns = int(c.diagnostics_period_s * 1e9)
+        self.health.io.input_timeout_s = c.input_timeout_s
+        self.health.drop_warn_ratio = c.drop_warn_ratio
+        self.solver.error_frames = c.solver_error_frames
+        self.solver.warn_frames = c.solver_warn_frames
 
     def setup(self) -> None:
         """Everything but the subscriptions, from ``self.conf``: the camera extrinsic,
@@ -219,6 +276,8 @@ class MappingNode(Node):
         c = self.conf
         self.health = NodeHealth(self, input_timeout_s=c.input_timeout_s,
                                  drop_warn_ratio=c.drop_warn_ratio)
+        self.solver = SolverHealth(c.solver_error_frames, c.solver_warn_frames)
+        self.health.conditions.append(self.solver)
         _, extrinsic = load_camera_yaml(c.camera_config or None)
         self.T_base_cam_config = extrinsic.T_base_cam
         self.T_base_cam = self.T_base_cam_config  # of the current session
@@ -264,8 +323,9 @@ class MappingNode(Node):
         self.create_service(Trigger, '~/reset', self._on_reset)
         self.create_service(Trigger, '~/pause', self._on_pause)
         self.create_service(Trigger, '~/resume', self._on_resume)
-        self.create_timer(c.cloud_period_s, self._publish_cloud)
-        self.create_timer(c.diagnostics_period_s, self._publish_diagnostics)
+        self._cloud_timer = self.create_timer(c.cloud_period_s, self._publish_cloud)
+        self._diagnostics_timer = self.create_timer(c.diagnostics_period_s,
+                                                    self._publish_diagnostics)
         self._worker.start()
         self.get_logger().info(f'mapping_node ready: {c.tracks_topic} -> {c.cloud_topic}')
 
@@ -419,6 +479,7 @@ class MappingNode(Node):
         self._choose_extrinsic()
         self.session = MappingSession(camera, self.T_base_cam, mapper_conf(self.conf),
                                       session_conf(self.conf))
+        self.solver.new_map()
         self.feeder = FrameFeeder(self.session, self.conf.odom_wait_s)
         self.stamps.reset()
         self._now_ns = 0
@@ -470,6 +531,7 @@ class MappingNode(Node):
         if order == 'backwards':
             self._before_reset('time', 'time went backwards (bag loop?)')
             self.session.reset()
+            self.solver.new_map()
             self.feeder.reset()
             self._now_ns = 0
         for t in self.stamps.run if order == 'backwards' else [tr]:
@@ -502,6 +564,7 @@ class MappingNode(Node):
             if f.result is None:
                 self.health.on_reject(f'mapper: {f.error}')
             else:
+                self.solver.on_result(f.result.state, f.result.events)
                 self._publish_frame(f, path)
                 if self.conf.publish_tf and f.result.T_map_base is not None:
                     self._broadcast(f.result.T_map_base, T_odom_base, f.tracks.stamp_ns,
@@ -608,6 +671,7 @@ class MappingNode(Node):
                 return response
             n = len(self.session.mapper.trajectory()[0])
             self.session.reset()
+            self.solver.new_map()
             self.feeder.reset()
             self.stamps.reset()
             self._now_ns = 0
