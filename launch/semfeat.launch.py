@@ -3,14 +3,19 @@
     ros2 launch semfeat_ros semfeat.launch.py [namespace:=car1] [use_sim_time:=true]
         [image_topic:=...] [camera_info_topic:=...] [odom_topic:=...] [gnss_topic:=...]
         [input_transport:=raw|compressed] [input_reliability:=best_effort|reliable]
-        [camera_config:=FILE] [output_dir:=DIR] [rviz:=true] [config_dir:=DIR]
+        [camera_config:=FILE] [output_dir:=DIR] [rviz:=true] [managed:=true]
+        [config_dir:=DIR]
 
 The nodes' topics are relative names: under ``namespace`` every input and output moves with it
 (``/car1/camera/front/image_raw`` ... ``/car1/semantic_cloud``); /tf, /tf_static and
 /diagnostics stay global. A topic argument that starts with ``/`` is taken as it is.
+
+``managed:=true`` starts the managed (lifecycle) variants (``<node>_managed``) under the same
+names and parameters instead: they start unconfigured, and a lifecycle manager or
+``ros2 lifecycle set /<namespace>/<node> configure`` (then ``activate``) brings them up.
 """
 from launch.actions import DeclareLaunchArgument
-from launch.conditions import IfCondition
+from launch.conditions import IfCondition, UnlessCondition
 from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
 from launch_ros.actions import Node
 from launch_ros.parameter_descriptions import ParameterValue
@@ -41,6 +46,8 @@ ARGS = (
      '/tf_static does not carry it; empty = the shipped config/camera_front.yaml'),
     ('output_dir', 'semfeat_map', 'Where ~/save_map writes the map'),
     ('rviz', 'false', 'Start RViz2 with rviz/semfeat.rviz'),
+    ('managed', 'false', 'Start the managed (lifecycle) variants <node>_managed, unconfigured, '
+     'instead of the plain nodes'),
 )
 
 
@@ -57,8 +64,11 @@ def generate_launch_description() -> LaunchDescription:
                   {'use_sim_time': LaunchConfiguration('use_sim_time')},
                   {arg: ParameterValue(LaunchConfiguration(arg), value_type=str)
                    for arg in NODE_ARGS[name]}]  # strings as given ('' included)
-        nodes.append(Node(package='semfeat_ros', executable=name, name=name, output='screen',
-                          namespace=LaunchConfiguration('namespace'), parameters=params))
+        for executable, condition in ((name, UnlessCondition), (f'{name}_managed', IfCondition)):
+            nodes.append(Node(package='semfeat_ros', executable=executable, name=name,
+                              output='screen', namespace=LaunchConfiguration('namespace'),
+                              parameters=params,
+                              condition=condition(LaunchConfiguration('managed'))))
     nodes.append(Node(package='rviz2', executable='rviz2', name='rviz2', output='screen',
                       namespace=LaunchConfiguration('namespace'),
                       arguments=['-d', PathJoinSubstitution([share, 'rviz', 'semfeat.rviz'])],

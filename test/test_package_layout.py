@@ -162,7 +162,7 @@ def _load_launch_file(share: Path) -> list[_Recorder]:
     for mod, names in {
         'launch': ['LaunchDescription'],
         'launch.actions': ['DeclareLaunchArgument'],
-        'launch.conditions': ['IfCondition'],
+        'launch.conditions': ['IfCondition', 'UnlessCondition'],
         'launch.substitutions': ['LaunchConfiguration', 'PathJoinSubstitution'],
         'launch_ros.actions': ['Node'],
         'launch_ros.parameter_descriptions': ['ParameterValue'],
@@ -196,11 +196,23 @@ def test_launch_file_names_installed_things(colcon_install: Path) -> None:
     share = colcon_install / PKG / 'share' / PKG
     made = _load_launch_file(share)
     nodes = [r for r in made if type(r).__name__ == 'Node' and r.kwargs['package'] == PKG]
-    assert sorted(n.kwargs['executable'] for n in nodes) == sorted(NODES)
+    # the plain nodes unless managed:=true, their managed variants (same names) if it is
+    by_condition = {}
+    for n in nodes:
+        cond = n.kwargs['condition']
+        assert cond.args[0].args == ('managed',)
+        by_condition.setdefault(type(cond).__name__, []).append(n)
+    assert sorted(by_condition) == ['IfCondition', 'UnlessCondition']
+    assert sorted(n.kwargs['executable'] for n in by_condition['UnlessCondition']) == \
+        sorted(NODES)
+    assert sorted(n.kwargs['executable'] for n in by_condition['IfCondition']) == \
+        sorted(f'{name}_managed' for name in NODES)
+    for group in by_condition.values():
+        assert sorted(n.kwargs['name'] for n in group) == sorted(NODES)
     declared = {r.args[0] for r in made if type(r).__name__ == 'DeclareLaunchArgument'}
     assert {'namespace', 'use_sim_time', 'image_topic', 'camera_info_topic', 'odom_topic',
             'gnss_topic', 'input_transport', 'input_reliability', 'camera_config', 'output_dir',
-            'rviz'} <= declared
+            'rviz', 'managed'} <= declared
     for node in nodes:
         assert node.kwargs['namespace'].args == ('namespace',)
         # every LaunchConfiguration a node reads is a declared argument
@@ -215,7 +227,7 @@ def test_launch_file_names_installed_things(colcon_install: Path) -> None:
                  'PathJoinSubstitution']
         assert len(files) == 1
         parts = files[0].args[0]
-        assert parts[-1] == f'{node.kwargs["executable"]}.yaml'
+        assert parts[-1] == f'{node.kwargs["name"]}.yaml'
         assert (share / 'config' / parts[-1]).is_file()
     # the default config_dir is <share of semfeat_ros>/config
     config_arg = next(r for r in made if type(r).__name__ == 'DeclareLaunchArgument'
