@@ -52,12 +52,13 @@ class FailingUpdates:
 
 
 def failing(fail: set[int]) -> Any:
-    """A ``wrap_smoother`` for :class:`Mapper`: update 5 alone fails (recovered by a rebuild),
-    updates 15-18 fail (the update and its three rebuilds: the window is reset)."""
+    """A ``wrap_smoother`` for :class:`Mapper` whose updates numbered in ``fail`` raise."""
     calls = {'n': 0}
     return lambda smoother: FailingUpdates(smoother, calls, fail)
 
 
+# update 5 alone fails (recovered by a rebuild); updates 15-18 fail (the update and its three
+# rebuilds: the window is reset)
 FAIL = {5, 15, 16, 17, 18}
 
 
