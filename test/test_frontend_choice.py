@@ -193,3 +193,21 @@ def test_node_parameters() -> None:
     assert message_descriptors('semfeat', unit) is unit  # semfeat: any D
     with pytest.raises(FeatureInputError, match='byte values'):
         bytes_from_floats(np.full((2, 32), 0.5, np.float32))
+
+
+def test_match_pairs_tool_on_three_frames() -> None:
+    from semfeat_ros.tools import match_pairs
+
+    r = match_pairs.run(REPO / 'bags' / 'garage_ramp_seed0', frames=3)
+    assert r['frames'] == 3
+    for kind in match_pairs.FRONTENDS:
+        for m in match_pairs.METHODS:
+            s = r[f'{kind}_{m}']
+            assert s['pairs'] == 2 and s['matcher_ms_median'] > 0
+            assert 0 < s['verified_median'] <= s['matches_median']
+        assert r[f'{kind}_learned']['ms_ratio_to_mnn'] > 0
+        assert r[f'{kind}_learned']['frame_ms_ratio_to_mnn'] > 0
+        assert r[f'{kind}_frontend_ms_median'] > 0
+    assert r['xfeat_learned']['verified_frames'] == 1.0
+    table = match_pairs.format_table(r)
+    assert table.count('\n') == 5 and '| xfeat + learned |' in table
