@@ -4,7 +4,7 @@
         [image_topic:=...] [camera_info_topic:=...] [odom_topic:=...] [gnss_topic:=...]
         [input_transport:=raw|compressed] [input_reliability:=best_effort|reliable]
         [camera_config:=FILE] [output_dir:=DIR] [rviz:=true] [managed:=true]
-        [config_dir:=DIR]
+        [frontend:=semfeat|xfeat|sift|orb] [matcher:=mnn|learned] [config_dir:=DIR]
 
 The nodes' topics are relative names: under ``namespace`` every input and output moves with it
 (``/car1/camera/front/image_raw`` ... ``/car1/semantic_cloud``); /tf, /tf_static and
@@ -27,8 +27,9 @@ NODES = ('feature_node', 'matcher_node', 'mapping_node')
 # parameters of each node set from launch arguments of the same name
 NODE_ARGS = {
     'feature_node': ('image_topic', 'camera_info_topic', 'input_transport',
-                     'input_reliability'),
-    'matcher_node': ('image_topic', 'camera_info_topic', 'input_transport'),
+                     'input_reliability', 'frontend'),
+    'matcher_node': ('image_topic', 'camera_info_topic', 'input_transport', 'frontend',
+                     'matcher'),
     'mapping_node': ('camera_info_topic', 'odom_topic', 'gnss_topic', 'input_reliability',
                      'camera_config', 'output_dir'),
 }
@@ -45,6 +46,10 @@ ARGS = (
     ('camera_config', '', 'Calibration YAML with the base_link -> camera extrinsic, used when '
      '/tf_static does not carry it; empty = the shipped config/camera_front.yaml'),
     ('output_dir', 'semfeat_map', 'Where ~/save_map writes the map'),
+    ('frontend', 'semfeat', 'Keypoints and descriptors of feature_node (semfeat, xfeat, sift, '
+     "orb; labelled by the network's segmentation), told to matcher_node too"),
+    ('matcher', 'mnn', 'matcher_node: mnn (mutual nearest neighbour) or learned (LighterGlue, '
+     'frontend xfeat only)'),
     ('rviz', 'false', 'Start RViz2 with rviz/semfeat.rviz'),
     ('managed', 'false', 'Start the managed (lifecycle) variants <node>_managed, unconfigured, '
      'instead of the plain nodes'),
