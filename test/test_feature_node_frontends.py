@@ -1,8 +1,11 @@
-"""feature_node with ``frontend: xfeat`` and matcher_node with ``matcher: learned`` over DDS.
+"""feature_node with ``frontend: xfeat`` / ``orb`` and matcher_node with ``matcher: learned`` /
+``mnn`` over DDS.
 
-feature_node publishes XFeat keypoints labelled by the network's mask (an untrained SemFeatNet
-written to tmp_path: the test checks the wiring and the contract, not the mask's quality);
-matcher_node tracks them with LighterGlue. Frames: blurred noise shifted 6 px to the left.
+feature_node publishes XFeat (ORB) keypoints labelled by the network's mask (an untrained
+SemFeatNet written to tmp_path: the test checks the wiring and the contract, not the mask's
+quality); matcher_node tracks them with LighterGlue (ORB: Hamming mutual nearest neighbour on
+the bytes carried as float32). Frames: blurred noise (sigma 1 px, where both detectors find
+keypoints) shifted 6 px to the left.
 """
 from __future__ import annotations
 
@@ -48,7 +51,7 @@ def untrained_weights(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def frame(shift: int) -> np.ndarray:
     rng = np.random.default_rng(1)
-    wide = cv2.GaussianBlur((rng.random((H, W + 32, 3)) * 255).astype(np.uint8), (0, 0), 2)
+    wide = cv2.GaussianBlur((rng.random((H, W + 32, 3)) * 255).astype(np.uint8), (0, 0), 1)
     return np.ascontiguousarray(wide[:, 16 + shift:16 + shift + W])
 
 
@@ -68,17 +71,20 @@ def ros_context(isolated_ros):
     rclpy.try_shutdown()
 
 
-@pytest.mark.ros_domain(150)
-def test_xfeat_features_and_learned_tracks(ros_context, untrained_weights: Path) -> None:
+@pytest.mark.parametrize('frontend,matcher_kind', [
+    pytest.param('xfeat', 'learned', marks=pytest.mark.ros_domain(150)),
+    pytest.param('orb', 'mnn', marks=pytest.mark.ros_domain(151))])
+def test_features_and_tracks(ros_context, untrained_weights: Path, frontend: str,
+                             matcher_kind: str) -> None:
     from semfeat_ros.nodes.feature_node import FeatureNode
     from semfeat_ros.nodes.matcher_node import MatcherNode
 
     feature = FeatureNode(parameter_overrides=[
-        Parameter('frontend', value='xfeat'), Parameter('weights', value=str(untrained_weights)),
+        Parameter('frontend', value=frontend), Parameter('weights', value=str(untrained_weights)),
         Parameter('max_keypoints', value=500), Parameter('warmup_size', value=[0, 0]),
         Parameter('input_reliability', value='reliable'), Parameter('input_depth', value=10)])
     matcher = MatcherNode(parameter_overrides=[
-        Parameter('frontend', value='xfeat'), Parameter('matcher', value='learned'),
+        Parameter('frontend', value=frontend), Parameter('matcher', value=matcher_kind),
         Parameter('min_inliers', value=8)])
     probe = Node('probe')
     features: list[PointCloud2] = []
@@ -111,15 +117,20 @@ def test_xfeat_features_and_learned_tracks(ros_context, untrained_weights: Path)
         assert wait(lambda: len(tracks) >= 2), 'no tracks'
         f = features_from_msg(features[-1])
         assert 50 < len(f.keypoints) <= 500
-        assert f.descriptors.shape == (len(f.keypoints), 64)  # XFeat's D
-        np.testing.assert_allclose(np.linalg.norm(f.descriptors, axis=1), 1.0, atol=1e-4)
+        if frontend == 'xfeat':
+            assert f.descriptors.shape == (len(f.keypoints), 64)  # XFeat's D
+            np.testing.assert_allclose(np.linalg.norm(f.descriptors, axis=1), 1.0, atol=1e-4)
+        else:  # ORB's 32 bytes, one float32 0..255 each
+            assert f.descriptors.shape == (len(f.keypoints), 32)
+            d = f.descriptors
+            assert (d == np.rint(d)).all() and d.min() >= 0 and d.max() <= 255 and d.max() > 1
         mask = image_to_numpy(masks[-1])
         assert mask.shape == (H, W)
         u, v = np.rint(f.keypoints).astype(int).T
         np.testing.assert_array_equal(f.labels, mask[v, u])  # the network's class
         assert not np.isin(f.labels, [16, 17, 18, 255]).any()  # sky, dynamic, outside
         t = tracks_from_msg(tracks[-1])
-        assert len(t.track_ids) > 30  # LighterGlue matches verified by the bearing RANSAC
+        assert len(t.track_ids) > 30  # matches verified by the bearing RANSAC
         assert feature.health.counters.rejected == 0 == matcher.health.counters.rejected
     finally:
         executor.shutdown()
