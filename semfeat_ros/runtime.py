@@ -152,6 +152,77 @@ class LatestWorker(Generic[T]):
                     self._busy = False
 
 
+class LoadGovernor:
+    """Chooses a node's processing mode, full or light, from its compute time against the input
+    frame period, so that a node falling behind switches to its declared lighter mode before
+    frames are dropped at random.
+
+    The frame period is the median interval of the last ``window`` input stamps (ns). The light
+    mode starts when a frame was dropped while the last one ran, or when the median compute
+    time of the last ``window`` full-mode frames exceeds ``enter_ratio`` of the period; it
+    ends after ``leave_frames`` light frames in a row without a drop, each computed within
+    ``leave_ratio`` of the period (room for the full mode). Until the period is known
+    (``window`` + 1 stamps) frames count for nothing and the mode stays full. Not thread-safe:
+    one worker thread calls :meth:`on_input` and :meth:`on_done`.
+    """
+
+    def __init__(self, enter_ratio: float = 0.9, leave_ratio: float = 0.5,
+                 leave_frames: int = 30, window: int = 8) -> None:
+        if not 0.0 < leave_ratio < enter_ratio:
+            raise ValueError(f'need 0 < leave_ratio < enter_ratio, got {leave_ratio}, '
+                             f'{enter_ratio}')
+        if leave_frames < 1 or window < 2:
+            raise ValueError(f'leave_frames >= 1 and window >= 2, got {leave_frames}, {window}')
+        self.enter_ratio, self.leave_ratio = enter_ratio, leave_ratio
+        self.leave_frames = leave_frames
+        self._stamps: deque[int] = deque(maxlen=window + 1)
+        self._full_s: deque[float] = deque(maxlen=window)
+        self._calm = 0  # light frames in a row with room for the full mode
+        self.light = False
+        self.light_frames = 0  # frames processed in the light mode
+        self.switches = 0  # changes of mode
+
+    @property
+    def period_s(self) -> float | None:
+        """Median input frame period (s), None until enough stamps."""
+        if len(self._stamps) < self._stamps.maxlen:
+            return None
+        d = np.diff(np.asarray(self._stamps, dtype=np.int64))
+        d = d[d > 0]
+        return float(np.median(d)) * 1e-9 if len(d) else None
+
+    def on_input(self, stamp_ns: int) -> None:
+        """A frame about to be processed, stamped ``stamp_ns`` (ns)."""
+        if self._stamps and stamp_ns <= self._stamps[-1]:
+            self._stamps.clear()  # time went backwards (a bag loop): measure again
+        self._stamps.append(int(stamp_ns))
+
+    def on_done(self, compute_s: float, dropped: bool) -> None:
+        """The frame took ``compute_s`` (s) in the current mode; ``dropped``: a newer frame
+        replaced a waiting one meanwhile."""
+        period = self.period_s
+        if period is None:
+            return  # warm-up frames say nothing about the load
+        if self.light:
+            self.light_frames += 1
+            calm = not dropped and compute_s <= self.leave_ratio * period
+            self._calm = self._calm + 1 if calm else 0
+            if self._calm >= self.leave_frames:
+                self._switch(False)
+            return
+        self._full_s.append(compute_s)
+        slow = (len(self._full_s) == self._full_s.maxlen
+                and float(np.median(self._full_s)) > self.enter_ratio * period)
+        if dropped or slow:
+            self._switch(True)
+
+    def _switch(self, light: bool) -> None:
+        self.light = light
+        self.switches += 1
+        self._calm = 0
+        self._full_s.clear()
+
+
 class RateLimit:
     """At most one event per ``min_interval_s`` (s, on a monotonic clock); one instance can be
     shared by several :class:`ChangeGate` so that all the resets of a node are limited

@@ -5,11 +5,13 @@ import threading
 import time
 
 import numpy as np
+import pytest
 
 from semfeat_ros.runtime import (
     ChangeGate,
     LatencyStats,
     LatestWorker,
+    LoadGovernor,
     RateLimit,
     RateMeter,
     StampGuard,
@@ -136,3 +138,41 @@ def test_cpu_has_bf16_reads_the_flags(tmp_path) -> None:
     info.write_text('processor\t: 0\nflags\t\t: fpu sse2 avx2 avx512f\n')
     assert not cpu_has_bf16(info)
     assert not cpu_has_bf16(tmp_path / 'missing')
+
+
+def _feed(g: LoadGovernor, stamps: range, compute_s: float, dropped: bool = False) -> None:
+    for stamp in stamps:
+        g.on_input(stamp)
+        g.on_done(compute_s, dropped)
+
+
+def test_load_governor_enters_light_mode_when_slow_and_leaves_with_room() -> None:
+    period = 100_000_000  # 10 Hz, ns
+    g = LoadGovernor(enter_ratio=0.9, leave_ratio=0.5, leave_frames=5, window=4)
+    _feed(g, range(0, 4 * period, period), 0.2)  # slow warm-up frames count for nothing
+    assert not g.light and g.period_s is None  # the period is not known yet
+    _feed(g, range(4 * period, 8 * period, period), 0.08)
+    assert g.period_s == pytest.approx(0.1) and not g.light  # 80 ms of 100: full mode
+    _feed(g, range(8 * period, 10 * period, period), 0.095)
+    assert not g.light  # median of the last four still 80-95 ms ...
+    _feed(g, range(10 * period, 12 * period, period), 0.095)
+    assert g.light and g.switches == 1  # ... now above 90 ms: light mode
+    _feed(g, range(12 * period, 16 * period, period), 0.045)
+    assert g.light  # four calm frames of the five needed
+    _feed(g, range(16 * period, 17 * period, period), 0.06)
+    assert g.light  # 60 ms leaves no room for the full mode: the count restarts
+    _feed(g, range(17 * period, 22 * period, period), 0.045)
+    assert not g.light and g.switches == 2 and g.light_frames == 11
+
+
+def test_load_governor_switches_on_a_drop_and_restarts_on_a_bag_loop() -> None:
+    period = 50_000_000
+    g = LoadGovernor(leave_frames=3, window=3)
+    _feed(g, range(0, 4 * period, period), 0.01)
+    assert not g.light
+    _feed(g, range(4 * period, 5 * period, period), 0.01, dropped=True)
+    assert g.light and g.period_s == pytest.approx(0.05)
+    g.on_input(0)  # time went backwards: the period is measured again
+    assert g.period_s is None
+    with pytest.raises(ValueError):
+        LoadGovernor(enter_ratio=0.5, leave_ratio=0.6)

@@ -8,6 +8,12 @@ descriptors labelled by one pass of the network for its segmentation (see
 ``/semfeat/semantic_mask`` (mono8) and, only when subscribed, ``/semfeat/semantic_mask/color``
 (rgb8 overlay). ``/diagnostics`` reports rates, latency and the frames dropped or rejected.
 
+When the node falls behind its input (a frame dropped, or the compute time near the frame
+period: :class:`~semfeat_ros.runtime.LoadGovernor`) the semfeat front end switches to its light
+mode, the network input at ``light_resize_max`` px (about 0.64x the compute at 512 against
+640), and back once there is room again; ``/diagnostics`` reports the mode, the light frames and
+the switches.
+
 A CameraInfo of another camera (size or intrinsics) replaces the current one only when
 ``change_confirm_messages`` consecutive messages carry it, at most once per
 ``min_change_interval_s``; a lone outlier is ignored and counted as rejected. The network is
@@ -16,7 +22,7 @@ sizes already readied go on; the runtime keeps the sessions of a few sizes only 
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import sys
 import threading
 from typing import Any
@@ -35,7 +41,7 @@ from semfeat_ros.nodes.diagnostics import NodeHealth, spin_node, wall_time
 from semfeat_ros.nodes.params import declare_config, guard_updates, param
 from semfeat_ros.nodes.qos import input_qos
 from semfeat_ros.offline.frontends import make_frontend
-from semfeat_ros.runtime import ChangeGate, LatestWorker, RateLimit, cpu_has_bf16
+from semfeat_ros.runtime import ChangeGate, LatestWorker, LoadGovernor, RateLimit, cpu_has_bf16
 
 
 @dataclass
@@ -95,6 +101,10 @@ class FeatureNodeConfig:
                                     'Classes whose keypoints are discarded', read_only=True)
     resize_max: int = param(640, 'Longer side of the network input (px); frames are resized',
                             range=(64, 4096), read_only=True)
+    light_resize_max: int = param(512, 'Longer side of the network input (px) in the light '
+                                  'mode the node takes while it falls behind its input '
+                                  '(semfeat front end); 0 = no light mode',
+                                  range=(0, 4096), read_only=True)
     mask_resolution: str = param('input', 'Size of the published mask: input image, network '
                                  'input, or the segmentation logit grid (network input / 2)',
                                  choices=('input', 'network', 'seg'), read_only=True)
@@ -165,8 +175,15 @@ class FeatureNode(Node):
         if any(warmup) and (len(warmup) != 2 or min(warmup) < 16):
             raise ValueError(f'warmup_size must be [width, height] >= 16 px or [0, 0] (none), '
                              f'got {warmup}')
+        # the light mode: the same network at a smaller input, readied beside the full one
+        self.light_frontend = None
+        if c.frontend == 'semfeat' and 0 < c.light_resize_max < c.resize_max:
+            self.light_frontend = make_frontend(
+                'semfeat', replace(frontend_config(c), resize_max=c.light_resize_max))
+        self.governor = LoadGovernor()
         if any(warmup):
-            self.frontend.prepare(*warmup)
+            for fe in self._frontends():
+                fe.prepare(*warmup)
         self._camera: CameraModel | None = None
         self._camera_lock = threading.Lock()
         self._camera_gate: ChangeGate[CameraModel] = ChangeGate(
@@ -230,7 +247,8 @@ class FeatureNode(Node):
     def _prepare(self, size: tuple[int, int]) -> None:
         width, height = size
         try:
-            self.frontend.prepare(width, height)
+            for fe in self._frontends():
+                fe.prepare(width, height)
         except Exception as exc:  # noqa: BLE001 - the first frame reports it again, counted
             self.get_logger().warning(f'could not prepare the network for {width}x{height} '
                                       f'px: {exc}')
@@ -261,8 +279,11 @@ class FeatureNode(Node):
         except FrontendError as exc:
             self.health.on_reject(str(exc))
             return
+        light = self.governor.light and self.light_frontend is not None
+        self.governor.on_input(stamp_ns)
+        dropped = self._worker.dropped
         try:
-            feats = self.frontend.process(image, camera)
+            feats = (self.light_frontend if light else self.frontend).process(image, camera)
         except FrontendError as exc:
             self.health.on_reject(str(exc))
             return
@@ -282,10 +303,21 @@ class FeatureNode(Node):
             self.pub_color.publish(numpy_to_image(overlay, 'rgb8', stamp_ns=stamp_ns,
                                                   frame_id=frame_id, msg_cls=Image))
         self.health.on_output(stamp_ns, wall_time() - t0)
+        if self.light_frontend is not None:
+            self.governor.on_done(wall_time() - t0, self._worker.dropped > dropped)
+
+    def _frontends(self) -> list[Any]:
+        """The front ends this node runs: the full one and the light mode's, if any."""
+        return [fe for fe in (self.frontend, self.light_frontend) if fe is not None]
 
     def _publish_diagnostics(self) -> None:
         self.health.counters.dropped = self._worker.dropped
-        self.health.extra['keypoints_last'] = str(self.frontend.last_count)
+        g = self.governor
+        last = self.light_frontend if g.light and self.light_frontend else self.frontend
+        self.health.extra['keypoints_last'] = str(last.last_count)
+        self.health.extra.update(
+            mode='light' if g.light and self.light_frontend else 'full',
+            light_frames=str(g.light_frames), mode_switches=str(g.switches))
         counts = self._camera_gate.counts
         self.health.extra.update(camera_changes=str(counts.confirmed),
                                  change_outliers_ignored=str(counts.outliers))
@@ -295,7 +327,7 @@ class FeatureNode(Node):
         """Stop the worker threads and free the front end (the managed variant's cleanup)."""
         self._preparer.stop()
         self._worker.stop()
-        self.frontend = None
+        self.frontend = self.light_frontend = None
 
     def destroy_node(self) -> None:
         if getattr(self, 'frontend', None) is not None:
