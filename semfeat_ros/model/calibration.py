@@ -33,7 +33,7 @@ from semfeat_ros.model.errors import DatasetError, ModelConfigError, WeightsForm
 from semfeat_ros.model.extractor import FeatureExtractor
 from semfeat_ros.model.metrics import confusion_matrix, mean_iou, subset_iou
 from semfeat_ros.model.semfeatnet import SemFeatNet
-from semfeat_ros.model.training import _check_seeds, check_render_sizes, expand_shards
+from semfeat_ros.model.training import check_render_sizes, check_seeds, expand_shards
 from semfeat_ros.model.weights_io import load_weights, resolve_weights_path, save_weights
 
 default_conf: dict[str, Any] = {
@@ -153,8 +153,8 @@ def main(conf: dict[str, Any] | None, weights: str | Path | None, out: Path,
     val = expand_shards(c['val_shards'])
     if not train:
         raise DatasetError(f'no training shards match {c["train_shards"]}')
-    train_seeds = _check_seeds(train, c['exclude_seeds'], 'training')
-    val_seeds = _check_seeds(val, c['exclude_seeds'], 'held-out')
+    train_seeds = check_seeds(train, c['exclude_seeds'], 'training')
+    val_seeds = check_seeds(val, c['exclude_seeds'], 'held-out')
     if set(train_seeds) & set(val_seeds):
         raise DatasetError(f'held-out shards share worlds with the training shards: '
                            f'{sorted(set(train_seeds) & set(val_seeds))}')

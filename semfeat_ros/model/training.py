@@ -162,7 +162,12 @@ def expand_shards(patterns: list[str], base: Path | None = None) -> list[Path]:
     return sorted(out)
 
 
-def _check_seeds(paths: list[Path], exclude: list[int], what: str) -> list[int]:
+def check_seeds(paths: list[Path], exclude: list[int], what: str) -> list[int]:
+    """The world seed of each shard in ``paths`` (``what`` names them in errors).
+
+    Raises:
+        DatasetError: a shard without a readable seed, or one of the ``exclude`` (test) seeds.
+    """
     seeds = []
     for p in paths:
         try:
@@ -508,8 +513,8 @@ def main(conf: dict[str, Any], out: Path, *, resume: bool = False, export: Path 
         raise DatasetError(f'no validation shards match {c["val_shards"]}')
     if set(train_paths) & set(val_paths):
         raise DatasetError('training and validation shards overlap')
-    train_seeds = _check_seeds(train_paths, c['exclude_seeds'], 'training')
-    val_seeds = _check_seeds(val_paths, c['exclude_seeds'], 'validation')
+    train_seeds = check_seeds(train_paths, c['exclude_seeds'], 'training')
+    val_seeds = check_seeds(val_paths, c['exclude_seeds'], 'validation')
     if set(train_seeds) & set(val_seeds):
         raise DatasetError(f'training and validation shards share world seeds '
                            f'{sorted(set(train_seeds) & set(val_seeds))}')
