@@ -1,6 +1,7 @@
 """Every module of the package imports, and the architecture boundaries hold."""
 from __future__ import annotations
 
+import ast
 import importlib
 import pkgutil
 import re
@@ -41,3 +42,17 @@ def test_library_boundaries(lib: str, allowed: tuple[str, ...]) -> None:
             if pattern.search(path.read_text()) and not rel.startswith(allowed):
                 offenders.append(rel)
     assert not offenders, f'{lib} imported outside {allowed}: {offenders}'
+
+
+def test_no_private_names_imported_across_modules() -> None:
+    """A name with a leading underscore stays in its module: what another module needs is
+    public there (package code and tests alike)."""
+    found = []
+    for path in sorted([*REPO.glob('semfeat_ros/**/*.py'), *REPO.glob('msg_adapters/**/*.py'),
+                        *REPO.glob('test/**/*.py')]):
+        for node in ast.walk(ast.parse(path.read_text(encoding='utf-8'))):
+            if isinstance(node, ast.ImportFrom) and node.module and node.module.split('.')[0] in (
+                    'semfeat_ros', 'msg_adapters', 'conftest', 'helpers'):
+                found += [f'{path.relative_to(REPO)}: {node.module}.{a.name}' for a in node.names
+                          if a.name.startswith('_') and not a.name.startswith('__')]
+    assert not found, found
