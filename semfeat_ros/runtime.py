@@ -157,13 +157,14 @@ class LoadGovernor:
     frame period, so that a node falling behind switches to its declared lighter mode before
     frames are dropped at random.
 
-    The frame period is the median interval of the last ``window`` input stamps (ns). The light
+    The frame period is the median interval between the last ``window`` + 1 arrivals of input
+    frames (wall clock: a bag replayed slower than recorded leaves more time per frame). The light
     mode starts when a frame was dropped while the last one ran, or when the median compute
     time of the last ``window`` full-mode frames exceeds ``enter_ratio`` of the period; it
     ends after ``leave_frames`` light frames in a row without a drop, each computed within
     ``leave_ratio`` of the period (room for the full mode). Until the period is known
-    (``window`` + 1 stamps) frames count for nothing and the mode stays full. Not thread-safe:
-    one worker thread calls :meth:`on_input` and :meth:`on_done`.
+    (``window`` + 1 arrivals) frames count for nothing and the mode stays full. The subscription
+    callback calls :meth:`on_input`, the worker thread :meth:`on_done`.
     """
 
     def __init__(self, enter_ratio: float = 0.9, leave_ratio: float = 0.5,
@@ -175,7 +176,8 @@ class LoadGovernor:
             raise ValueError(f'leave_frames >= 1 and window >= 2, got {leave_frames}, {window}')
         self.enter_ratio, self.leave_ratio = enter_ratio, leave_ratio
         self.leave_frames = leave_frames
-        self._stamps: deque[int] = deque(maxlen=window + 1)
+        self._lock = threading.Lock()
+        self._arrivals: deque[int] = deque(maxlen=window + 1)
         self._full_s: deque[float] = deque(maxlen=window)
         self._calm = 0  # light frames in a row with room for the full mode
         self.light = False
@@ -184,18 +186,20 @@ class LoadGovernor:
 
     @property
     def period_s(self) -> float | None:
-        """Median input frame period (s), None until enough stamps."""
-        if len(self._stamps) < self._stamps.maxlen:
-            return None
-        d = np.diff(np.asarray(self._stamps, dtype=np.int64))
+        """Median input frame period (s), None until enough arrivals."""
+        with self._lock:
+            if len(self._arrivals) < self._arrivals.maxlen:
+                return None
+            d = np.diff(np.asarray(self._arrivals, dtype=np.int64))
         d = d[d > 0]
         return float(np.median(d)) * 1e-9 if len(d) else None
 
-    def on_input(self, stamp_ns: int) -> None:
-        """A frame about to be processed, stamped ``stamp_ns`` (ns)."""
-        if self._stamps and stamp_ns <= self._stamps[-1]:
-            self._stamps.clear()  # time went backwards (a bag loop): measure again
-        self._stamps.append(int(stamp_ns))
+    def on_input(self, t_ns: int) -> None:
+        """An input frame arrived at ``t_ns`` (ns, a monotonic clock)."""
+        with self._lock:
+            if self._arrivals and t_ns <= self._arrivals[-1]:
+                self._arrivals.clear()  # the clock went backwards: measure again
+            self._arrivals.append(int(t_ns))
 
     def on_done(self, compute_s: float, dropped: bool) -> None:
         """The frame took ``compute_s`` (s) in the current mode; ``dropped``: a newer frame

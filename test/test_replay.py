@@ -15,7 +15,7 @@ import pytest
 from semfeat_ros.labels import load_labels
 from semfeat_ros.mapping.config import default_conf
 from semfeat_ros.offline.bag import BagSource, read_poses
-from semfeat_ros.offline.metrics import evaluate_trajectory
+from semfeat_ros.offline.metrics import evaluate_trajectory, max_altitude_step_m
 from semfeat_ros.tools.demo import DemoConfig, run_pipeline
 from semfeat_ros.tools.demo_report import read_outputs
 
@@ -35,7 +35,9 @@ QUALITY_RATE = 0.3
 # /semfeat/odometry (per frame, causal) 0.39 m ATE (semfeat-map's online trajectory: 0.36 m);
 # the final /semfeat/path (smoothed keyframes) 0.10 m (semfeat-map: 0.13 m); 160 points on
 # 2 floors, 36 % of them within 0.5 m of the rendered surfaces (median error 0.96 m).
-ATE_SIM3_MAX_M = 0.8  # /semfeat/odometry
+ATE_SIM3_MAX_M = 0.3  # /semfeat/odometry
+RAMP_ALTITUDE_MAX_M = 0.2  # /semfeat/odometry on the ramp, RMSE after Sim(3) alignment
+ALTITUDE_STEP_MAX_M = 0.3  # between consecutive /semfeat/odometry estimates
 PATH_ATE_SIM3_MAX_M = 0.3  # final /semfeat/path
 SURFACE_SHARE_MIN = 0.2  # cloud points within 0.5 m of the rendered surfaces
 SURFACE_MEDIAN_MAX_M = 1.5
@@ -138,6 +140,8 @@ def test_odometry_against_ground_truth(live: dict) -> None:
     assert len(o['stamps']) >= 30
     ev = evaluate_trajectory(o['stamps'], o['poses'], gt['stamps'], gt['poses'], metric=True)
     assert ev.metrics['ate_sim3_rmse_m'] < ATE_SIM3_MAX_M, ev.metrics
+    assert ev.metrics['ramp_altitude_rmse_sim3_m'] < RAMP_ALTITUDE_MAX_M, ev.metrics
+    assert max_altitude_step_m(o['poses']) < ALTITUDE_STEP_MAX_M
     stamps, poses = o['path']
     assert len(stamps) >= 30 and (np.diff(stamps) > 0).all()
     ev = evaluate_trajectory(stamps, poses, gt['stamps'], gt['poses'], metric=True)

@@ -172,7 +172,7 @@ def test_load_governor_switches_on_a_drop_and_restarts_on_a_bag_loop() -> None:
     assert not g.light
     _feed(g, range(4 * period, 5 * period, period), 0.01, dropped=True)
     assert g.light and g.period_s == pytest.approx(0.05)
-    g.on_input(0)  # time went backwards: the period is measured again
+    g.on_input(0)  # the clock went backwards: the period is measured again
     assert g.period_s is None
     with pytest.raises(ValueError):
         LoadGovernor(enter_ratio=0.5, leave_ratio=0.6)

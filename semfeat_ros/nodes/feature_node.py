@@ -8,11 +8,11 @@ descriptors labelled by one pass of the network for its segmentation (see
 ``/semfeat/semantic_mask`` (mono8) and, only when subscribed, ``/semfeat/semantic_mask/color``
 (rgb8 overlay). ``/diagnostics`` reports rates, latency and the frames dropped or rejected.
 
-When the node falls behind its input (a frame dropped, or the compute time near the frame
-period: :class:`~semfeat_ros.runtime.LoadGovernor`) the semfeat front end switches to its light
-mode, the network input at ``light_resize_max`` px (about 0.64x the compute at 512 against
-640), and back once there is room again; ``/diagnostics`` reports the mode, the light frames and
-the switches.
+When the node falls behind its input (a frame dropped, or the compute time near the period at
+which frames arrive: :class:`~semfeat_ros.runtime.LoadGovernor`) the semfeat front end
+switches to its light mode, the network input at ``light_resize_max`` px (about 0.64x the
+compute at 512 against 640), and back once there is room again; ``/diagnostics`` reports the
+mode, the light frames and the switches.
 
 A CameraInfo of another camera (size or intrinsics) replaces the current one only when
 ``change_confirm_messages`` consecutive messages carry it, at most once per
@@ -25,6 +25,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 import sys
 import threading
+import time
 from typing import Any
 
 from rclpy.executors import SingleThreadedExecutor
@@ -255,6 +256,7 @@ class FeatureNode(Node):
 
     def _on_image(self, msg: Image | CompressedImage) -> None:
         self.health.on_input()
+        self.governor.on_input(time.monotonic_ns())
         if not self._worker.submit(msg):
             self.health.counters.dropped += 1
 
@@ -280,7 +282,6 @@ class FeatureNode(Node):
             self.health.on_reject(str(exc))
             return
         light = self.governor.light and self.light_frontend is not None
-        self.governor.on_input(stamp_ns)
         dropped = self._worker.dropped
         try:
             feats = (self.light_frontend if light else self.frontend).process(image, camera)
