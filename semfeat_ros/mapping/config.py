@@ -146,7 +146,11 @@ default_conf: dict[str, Any] = {
     # ---- floors -------------------------------------------------------------------------------
     'floor_max_slope': 0.05,  # |dz/ds| below this is a plateau (level), above a ramp
     'floor_slope_window_m': 4.0,  # travelled distance over which the slope is measured (m)
-    'floor_min_plateau_m': 6.0,  # shortest plateau that makes a level (m travelled)
+    'floor_min_plateau_m': 4.0,  # shortest plateau that makes a level (m travelled); the
+    #                              flat run measured along the estimate is about 1.5 m
+    #                              shorter than the deck (the slope window reaches into
+    #                              the ramp's rounded start): the bundled bag's 7.3 m
+    #                              upper deck measures 5.8-6.0 m
     'floor_merge_m': 1.2,  # plateaus closer in altitude than this are one level (m)
     # classes hung under the slab above the vehicle (labels.yaml names): such a landmark takes
     # the storey of the plateau keyframes that saw it, not of its altitude (a covered level's

@@ -43,6 +43,7 @@ from semfeat_ros.mapping import (
     align_umeyama,
     detect_floors,
 )
+from semfeat_ros.mapping.config import default_conf
 from semfeat_ros.mapping.session import interpolate_pose
 from semfeat_ros.offline.errors import EvaluationError
 
@@ -175,12 +176,11 @@ def max_altitude_step_m(poses: np.ndarray) -> float | None:
 
 def gt_levels(gt_poses: np.ndarray, floor_conf: dict | None = None) -> FloorLevels:
     """Levels of the ground-truth trajectory (the mapper's plateau rule and parameters)."""
-    c = floor_conf or {}
+    c = {**default_conf, **(floor_conf or {})}
     P = np.asarray(gt_poses, dtype=np.float64).reshape(-1, 4, 4)[:, :3, 3]
-    return detect_floors(P, max_slope=c.get('floor_max_slope', 0.05),
-                         slope_window_m=c.get('floor_slope_window_m', 4.0),
-                         min_plateau_m=c.get('floor_min_plateau_m', 6.0),
-                         merge_m=c.get('floor_merge_m', 1.2))
+    return detect_floors(P, max_slope=c['floor_max_slope'],
+                         slope_window_m=c['floor_slope_window_m'],
+                         min_plateau_m=c['floor_min_plateau_m'], merge_m=c['floor_merge_m'])
 
 
 def storey_of(z: np.ndarray, levels: np.ndarray,
