@@ -68,34 +68,32 @@ def dev_pins() -> dict[str, Version]:
 
 
 @cache
-def used_names() -> set[str]:
-    """Top-level modules the package imports, plus module names it looks up as strings
-    (``importlib.util.find_spec('onnx')``)."""
-    names = set()
+def package_names() -> tuple[frozenset[str], frozenset[str]]:
+    """(top-level modules the package imports, lower-case identifiers in its string constants:
+    module names it looks up as strings, ``importlib.util.find_spec('onnx')``)."""
+    imported, strings = set(), set()
     for root in SOURCES:
         for path in (REPO / root).rglob('*.py'):
             for node in ast.walk(ast.parse(path.read_text())):
                 if isinstance(node, ast.Import):
-                    names.update(a.name.split('.')[0] for a in node.names)
+                    imported.update(a.name.split('.')[0] for a in node.names)
                 elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-                    names.add(node.module.split('.')[0])
+                    imported.add(node.module.split('.')[0])
                 elif isinstance(node, ast.Constant) and isinstance(node.value, str):
                     if re.fullmatch(r'[a-z_][a-z0-9_]*', node.value):
-                        names.add(node.value)
-    return names
+                        strings.add(node.value)
+    return frozenset(imported), frozenset(strings)
 
 
-@cache
+def used_names() -> set[str]:
+    """Top-level modules the package imports, plus module names it looks up as strings."""
+    imported, strings = package_names()
+    return set(imported | strings)
+
+
 def imported_modules() -> set[str]:
-    names = set()
-    for root in SOURCES:
-        for path in (REPO / root).rglob('*.py'):
-            for node in ast.walk(ast.parse(path.read_text())):
-                if isinstance(node, ast.Import):
-                    names.update(a.name.split('.')[0] for a in node.names)
-                elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-                    names.add(node.module.split('.')[0])
-    return names - set(sys.stdlib_module_names) - set(SOURCES)
+    """Third-party top-level modules the package imports."""
+    return set(package_names()[0]) - set(sys.stdlib_module_names) - set(SOURCES)
 
 
 def exec_depends() -> list[str]:

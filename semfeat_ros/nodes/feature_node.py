@@ -281,10 +281,9 @@ class FeatureNode(Node):
         except FrontendError as exc:
             self.health.on_reject(str(exc))
             return
-        light = self.governor.light and self.light_frontend is not None
         dropped = self._worker.dropped
         try:
-            feats = (self.light_frontend if light else self.frontend).process(image, camera)
+            feats = self._current_frontend().process(image, camera)
         except FrontendError as exc:
             self.health.on_reject(str(exc))
             return
@@ -307,17 +306,21 @@ class FeatureNode(Node):
         if self.light_frontend is not None:
             self.governor.on_done(wall_time() - t0, self._worker.dropped > dropped)
 
+    def _current_frontend(self) -> Any:
+        """The light mode's front end while the governor asks for it, else the full one."""
+        return self.light_frontend if self.governor.light and self.light_frontend else \
+            self.frontend
+
     def _frontends(self) -> list[Any]:
         """The front ends this node runs: the full one and the light mode's, if any."""
         return [fe for fe in (self.frontend, self.light_frontend) if fe is not None]
 
     def _publish_diagnostics(self) -> None:
         self.health.counters.dropped = self._worker.dropped
-        g = self.governor
-        last = self.light_frontend if g.light and self.light_frontend else self.frontend
-        self.health.extra['keypoints_last'] = str(last.last_count)
+        current, g = self._current_frontend(), self.governor
+        self.health.extra['keypoints_last'] = str(current.last_count)
         self.health.extra.update(
-            mode='light' if g.light and self.light_frontend else 'full',
+            mode='full' if current is self.frontend else 'light',
             light_frames=str(g.light_frames), mode_switches=str(g.switches))
         counts = self._camera_gate.counts
         self.health.extra.update(camera_changes=str(counts.confirmed),
