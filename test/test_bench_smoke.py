@@ -122,9 +122,16 @@ def test_cli_smoke_writes_document_figures_and_results(
             s['semfeat']['total']['p50'] / s['orb']['total']['p50'])
         assert st['ratios']['features']['sift'] == pytest.approx(
             s['semfeat']['features']['p50'] / s['sift']['features']['p50'])
+        assert st['ratios']['total']['xfeat'] == pytest.approx(
+            s['semfeat']['total']['p50'] / s['xfeat']['total']['p50'])
+        assert 'network' not in s['xfeat']  # XFeat's own extract, without the network
+        assert st['counts']['xfeat']['keypoints'] > 0
     e2e = res['end_to_end']
     assert set(e2e) == set(stages.FRONTENDS)
     assert all(e2e[fe]['frames'] == 3 and e2e[fe]['sustained_hz'] > 0 for fe in e2e)
+    assert e2e['xfeat']['description'].startswith('XFeat')
+    assert 'labels from the segmentation' in e2e['xfeat']['description']
+    assert 'labels from' not in e2e['sift']['description']
     soak = res['soak']
     assert soak['frames'] >= 1 and soak['samples'] >= 2
     assert len(soak['series']['rss_mb']) == soak['samples']
@@ -143,6 +150,14 @@ def test_cli_smoke_writes_document_figures_and_results(
         assert needle in text, needle
     p50 = res['stages']['640x512']['stats']['orb']['features']['p50']
     assert f'{p50:.1f}' in text  # the document carries the measured numbers
+    # the XFeat baseline: a column pair in every stage table, a ratio column, an end-to-end row
+    assert text.count('| XFeat p50 | XFeat p95 |') == 2
+    assert '| 640x512 / XFeat |' in text and '| 160x128 / XFeat |' in text
+    xrow = next(line for line in text.splitlines() if line.startswith('| xfeat | '))
+    assert xrow.split(' | ')[1] == f'{e2e["xfeat"]["sustained_hz"]:.2f}'
+    xp50 = res['stages']['640x512']['stats']['xfeat']['features']['p50']
+    assert f'{xp50:.1f}' in text
+    assert 'Rate ratios (semfeat Hz / baseline Hz): ORB ' in text and ', XFeat ' in text
 
     # the rendered frames are cached and reused (no re-rendering)
     cache = out / 'frames_160x128'

