@@ -220,7 +220,7 @@ def test_input_validation() -> None:
         g.verify_bearings(b[:, :2], b[:, :2])
     with pytest.raises(MatchingConfigError, match='threshold_rad'):
         g.verify_bearings(b, b, {'threshold_rad': -1.0})
-    with pytest.raises(MatchingConfigError, match='unknown key'):
+    with pytest.raises(MatchingConfigError, match='unknown config key verification.treshold'):
         g.verify_bearings(b, b, {'treshold': 0.1})
 
 

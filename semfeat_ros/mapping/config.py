@@ -5,9 +5,9 @@
 """
 from __future__ import annotations
 
-import copy
 from typing import Any
 
+from semfeat_ros import conf as common_conf
 from semfeat_ros.mapping.errors import MapperConfigError
 
 default_conf: dict[str, Any] = {
@@ -197,33 +197,18 @@ _FRACTIONS = ('kf_min_tracked_fraction', 'init_min_inlier_ratio', 'init_odom_min
 
 def merge_conf(conf: dict[str, Any] | None = None) -> dict[str, Any]:
     """``default_conf`` updated with ``conf``; validated (raises ``MapperConfigError``)."""
-    out = copy.deepcopy(default_conf)
-    for key, value in (conf or {}).items():
-        if key not in default_conf:
-            raise MapperConfigError(f'unknown mapping config key {key!r}')
-        out[key] = copy.deepcopy(value)
+    out = common_conf.merge_conf(default_conf, conf, MapperConfigError,
+                                 what='mapping config key')
     for key, choices in _CHOICES.items():
-        if out[key] not in choices:
-            raise MapperConfigError(f'{key} must be one of {choices}, got {out[key]!r}')
+        common_conf.check_choice(out[key], key, MapperConfigError, choices)
     for key in _POSITIVE:
-        v = out[key]
-        if isinstance(v, bool) or not isinstance(v, int | float) or not v > 0:
-            raise MapperConfigError(f'{key} must be a number > 0, got {v!r}')
+        common_conf.check_number(out[key], key, MapperConfigError, 0.0, lo_open=True)
     for key, lo in _INT_MIN.items():
-        v = out[key]
-        if isinstance(v, bool) or not isinstance(v, int) or v < lo:
-            raise MapperConfigError(f'{key} must be an integer >= {lo}, got {v!r}')
+        common_conf.check_int_min(out[key], key, MapperConfigError, lo)
     for key in _FRACTIONS:
-        v = out[key]
-        if isinstance(v, bool) or not isinstance(v, int | float) or not 0.0 <= v <= 1.0:
-            raise MapperConfigError(f'{key} must be in [0, 1], got {v!r}')
-    for key in ('vision_rotation_sigma_deg', 'level_prior_sigma_deg'):
-        v = out[key]
-        if isinstance(v, bool) or not isinstance(v, int | float) or not v >= 0:
-            raise MapperConfigError(f'{key} must be >= 0 (deg), got {v!r}')
-    v = out['kf_min_distance_m']
-    if isinstance(v, bool) or not isinstance(v, int | float) or not v >= 0:
-        raise MapperConfigError(f'kf_min_distance_m must be a number >= 0, got {v!r}')
+        common_conf.check_fraction(out[key], key, MapperConfigError)
+    for key in ('vision_rotation_sigma_deg', 'level_prior_sigma_deg', 'kf_min_distance_m'):
+        common_conf.check_number(out[key], key, MapperConfigError, 0.0)
     if out['camera_height_m'] is not None and not (
             isinstance(out['camera_height_m'], int | float) and out['camera_height_m'] > 0):
         raise MapperConfigError(

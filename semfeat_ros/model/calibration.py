@@ -28,6 +28,7 @@ import torch
 import torch.nn.functional as F  # noqa: N812 - the usual torch alias
 from tqdm import tqdm
 
+from semfeat_ros import conf as common_conf
 from semfeat_ros.labels import load_labels
 from semfeat_ros.model.errors import DatasetError, ModelConfigError, WeightsFormatError
 from semfeat_ros.model.extractor import FeatureExtractor
@@ -74,13 +75,10 @@ class Calibration:
 
 def merge_calibration_conf(conf: dict[str, Any] | None) -> dict[str, Any]:
     """``default_conf`` updated by ``conf`` (unknown keys and bad values raise)."""
-    c = {**default_conf, **(conf or {})}
-    unknown = set(c) - set(default_conf)
-    if unknown:
-        raise ModelConfigError(f'unknown calibration config keys {sorted(unknown)}')
+    c = common_conf.merge_conf(default_conf, conf, ModelConfigError,
+                               what='calibration config key')
     for key in ('frames_per_shard', 'val_frames_per_shard'):
-        if not isinstance(c[key], int) or c[key] < 1:
-            raise ModelConfigError(f'{key} must be an integer >= 1, got {c[key]!r}')
+        common_conf.check_int_min(c[key], key, ModelConfigError, 1)
     taus = c['taus']
     if not taus or not all(isinstance(t, int | float) and 0 <= t <= 5 for t in taus):
         raise ModelConfigError(f'taus must be numbers in [0, 5], got {taus!r}')

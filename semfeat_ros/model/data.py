@@ -49,6 +49,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from semfeat_ros import conf as common_conf
 from semfeat_ros.labels import IGNORE_LABEL, LabelSet, load_labels
 from semfeat_ros.model.errors import DatasetError, ModelConfigError
 
@@ -124,17 +125,11 @@ _UNIT_IMG, _UNIT_EDGE = _calibrate()
 
 
 def merge_conf(default: dict[str, Any], conf: dict[str, Any] | None, name: str) -> dict[str, Any]:
-    """Recursive ``{**default, **conf}`` rejecting unknown keys (error names ``name.key``)."""
-    out = dict(default)
-    for key, value in (conf or {}).items():
-        if key not in default:
-            raise ModelConfigError(f'unknown config key {name}.{key}; expected one of '
-                                   f'{sorted(default)}')
-        if isinstance(default[key], dict) and key != 'pair_mix':
-            out[key] = merge_conf(default[key], value, f'{name}.{key}')
-        else:
-            out[key] = value
-    return out
+    """Deep copy of ``default`` updated with ``conf``, nested sections merged, unknown keys
+    raising :class:`ModelConfigError` (named ``name.key``); ``pair_mix`` (keys are pair kinds,
+    not options) is replaced whole."""
+    return common_conf.merge_conf(default, conf, ModelConfigError, name=name,
+                                  opaque=('pair_mix',))
 
 
 # ---------------------------------------------------------------------------- frames

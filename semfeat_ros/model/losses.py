@@ -12,6 +12,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F  # noqa: N812 - the usual torch alias
 
+from semfeat_ros import conf as common_conf
 from semfeat_ros.model.errors import ModelConfigError, ModelInputError
 from semfeat_ros.model.semfeatnet import KP_STRIDE
 
@@ -383,11 +384,8 @@ class MultiTaskLoss:
         """
         self.class_weights = None if class_weights is None else torch.as_tensor(
             np.asarray(class_weights, np.float32))
-        self.conf = conf = {**default_loss_conf, **(conf or {})}
-        unknown = set(conf) - set(default_loss_conf)
-        if unknown:
-            raise ModelConfigError(f'unknown loss config keys {sorted(unknown)}; expected a '
-                                   f'subset of {sorted(default_loss_conf)}')
+        self.conf = conf = common_conf.merge_conf(default_loss_conf, conf, ModelConfigError,
+                                                  name='loss', what='loss config key')
         for key, value in conf.items():
             if key == 'seg_loss_stride':
                 if not isinstance(value, int) or isinstance(value, bool) or value < 1:

@@ -43,6 +43,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F  # noqa: N812 - the usual torch alias
 
+from semfeat_ros import conf as common_conf
 from semfeat_ros.model.errors import (
     ModelConfigError,
     ModelInputError,
@@ -208,10 +209,8 @@ class PeerExtractor(abc.ABC):
     }
 
     def __init__(self, conf: dict[str, Any] | None = None) -> None:
-        self.conf = {**self.default_conf, **(conf or {})}
-        unknown = set(self.conf) - set(self.default_conf)
-        if unknown:
-            raise ModelConfigError(f'{self.kind}: unknown option(s) {sorted(unknown)}')
+        self.conf = common_conf.merge_conf(self.default_conf, conf, ModelConfigError,
+                                           name=self.kind, what='option')
         if int(self.conf['max_keypoints']) < 1:
             raise ModelConfigError(
                 f'{self.kind}: max_keypoints must be >= 1, got {self.conf["max_keypoints"]}')
@@ -397,10 +396,8 @@ class PeerMatcher:
             raise ModelConfigError(
                 f'unknown peer {kind!r}; expected one of {", ".join(PEER_KINDS)}')
         self.kind = kind
-        self.conf = {**self.default_conf, **(conf or {})}
-        unknown = set(self.conf) - set(self.default_conf)
-        if unknown:
-            raise ModelConfigError(f'{kind} LightGlue: unknown option(s) {sorted(unknown)}')
+        self.conf = common_conf.merge_conf(self.default_conf, conf, ModelConfigError,
+                                           name=f'{kind}_lightglue', what='option')
         torch.set_num_threads(int(self.conf['num_threads']))
         path = wheel_file(kind, matcher=True)
         kf = _kornia()

@@ -57,6 +57,7 @@ import torch
 from torch import nn
 import torch.nn.functional as F  # noqa: N812 - the usual torch alias
 
+from semfeat_ros import conf as common_conf
 from semfeat_ros.model.errors import ModelConfigError, ModelInputError
 
 TASKS = ('kp', 'desc', 'seg')
@@ -255,11 +256,8 @@ class SemFeatNet(nn.Module):
 
     def __init__(self, conf: dict[str, Any] | None = None) -> None:
         super().__init__()
-        self.conf = conf = {**self.default_conf, **(conf or {})}
-        unknown = set(conf) - set(self.default_conf)
-        if unknown:
-            raise ModelConfigError(f'unknown network config keys {sorted(unknown)}; expected a '
-                                   f'subset of {sorted(self.default_conf)}')
+        self.conf = conf = common_conf.merge_conf(self.default_conf, conf, ModelConfigError,
+                                                  what='network config key')
         enc = [int(c) for c in conf['encoder_channels']]
         if len(enc) < 3 or min(enc) <= 0:
             raise ModelConfigError(

@@ -18,7 +18,6 @@ Deterministic for a given seed: sample ``k`` of the run is generated from ``(see
 """
 from __future__ import annotations
 
-import copy
 import csv
 from datetime import UTC, datetime
 import glob
@@ -36,6 +35,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 from tqdm import tqdm
 
+from semfeat_ros import conf as common_conf
 from semfeat_ros.labels import load_labels
 from semfeat_ros.model.data import (
     PAIR_KINDS,
@@ -106,15 +106,15 @@ default_train_conf: dict[str, Any] = {
 
 def load_train_conf(conf: dict[str, Any] | None) -> dict[str, Any]:
     """Merge a user config with the defaults, validating keys and basic ranges."""
-    conf = dict(conf or {})
-    unknown = set(conf) - set(default_train_conf)
-    if unknown:
-        raise ModelConfigError(f'unknown training config keys {sorted(unknown)}; expected a '
-                               f'subset of {sorted(default_train_conf)}')
-    c = {**copy.deepcopy(default_train_conf), **conf}
-    c['network'] = {**SemFeatNet.default_conf, **(c['network'] or {})}
+    c = common_conf.merge_conf(default_train_conf, conf, ModelConfigError,
+                               what='training config key',
+                               opaque=('val_mix', 'network', 'loss', 'data'))
+    c['network'] = common_conf.merge_conf(SemFeatNet.default_conf, c['network'],
+                                          ModelConfigError, name='network',
+                                          what='network config key')
     stride = SemFeatNet(c['network']).stride  # validates; input sizes are multiples of it
-    c['loss'] = {**default_loss_conf, **(c['loss'] or {})}
+    c['loss'] = common_conf.merge_conf(default_loss_conf, c['loss'], ModelConfigError,
+                                       name='loss', what='loss config key')
     MultiTaskLoss(c['loss'])  # validates
     c['data'] = merge_conf(default_data_conf, c['data'], 'data')
     for key in ('steps', 'batch_size', 'val_every', 'val_pairs', 'num_threads'):
