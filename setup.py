@@ -30,6 +30,7 @@ CONSOLE_SCRIPTS = [
     'semfeat-bench = semfeat_ros.tools.bench:cli',
     'semfeat-photos = semfeat_ros.tools.photos:cli',
     'semfeat-batch = semfeat_ros.tools.batch:cli',
+    'semfeat-report = semfeat_ros.tools.report:cli',
 ]
 
 setup(

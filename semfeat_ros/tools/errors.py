@@ -1,4 +1,4 @@
-"""Exceptions of the command-line tools (bag replay and recording).
+"""Exceptions of the command-line tools (bag replay and recording, the results report).
 
 Every message is a single line, so a CLI can print ``<prog>: error: <message>`` on stderr and
 exit non-zero without a traceback.
@@ -28,3 +28,19 @@ class UnknownMessageTypeError(BagToolError, ValueError):
 
 class BagWriteError(BagToolError, RuntimeError):
     """The output bag cannot be created or written (path exists, disk full, writer failure)."""
+
+
+class ReportError(Exception):
+    """Base class of the errors of ``semfeat-report`` (results tables of the docs)."""
+
+
+class ReportManifestError(ReportError, ValueError):
+    """The report manifest or the document's marker blocks are malformed or do not match."""
+
+
+class ReportInputError(ReportError, FileNotFoundError):
+    """A result directory, its JSON file or a value the manifest names is missing."""
+
+
+class ReportOutputError(ReportError, OSError):
+    """The document cannot be written where asked (a symbolic link)."""
