@@ -38,6 +38,9 @@ from semfeat_ros.model.weights_io import load_weights
 MAX_IMAGE_SIDE = 16384
 """Largest accepted image side (px); bigger inputs are rejected as absurd."""
 
+BACKENDS = ('auto', 'torch', 'onnxruntime', 'onnxruntime_int8')
+"""Choices of the ``backend`` conf key."""
+
 
 @dataclass
 class Features:
@@ -144,8 +147,12 @@ class FeatureExtractor:
         'bf16': False,  # bfloat16 autocast (faster on CPUs with AVX512-BF16/AMX, less exact)
         'fuse_batchnorm': True,  # fold BatchNorm into the convolutions at load time
         'backend': 'auto',  # forward on 'torch' (eager), 'onnxruntime' (the same weights
-        #                     exported in memory, 1.6-1.8x faster on an AVX2 CPU) or 'auto':
-        #                     onnxruntime when installed and bf16 is off, else torch
+        #                     exported in memory, 1.6-1.8x faster on an AVX2 CPU),
+        #                     'onnxruntime_int8' (that graph statically quantised to int8 at
+        #                     start-up, semfeat_ros.model.quantize) or 'auto': onnxruntime
+        #                     when installed and bf16 is off, else torch
+        'int8_calibration_frames': 16,  # onnxruntime_int8: frames of the bundled bag that
+        #                                 calibrate the activation ranges (per input size)
         'ort_spin': False,  # onnxruntime: idle threads spin-wait (faster alone, slower beside
         #                     other busy processes)
     }
@@ -186,22 +193,29 @@ class FeatureExtractor:
             model = model.to(memory_format=torch.channels_last)
         self.model = model
         self.backend = self._resolve_backend()
-        self._ort = OrtNetwork(model, int(conf['num_threads']), bool(conf['ort_spin'])) \
-            if self.backend == 'onnxruntime' else None
+        self._ort: OrtNetwork | None = None
+        if self.backend == 'onnxruntime':
+            self._ort = OrtNetwork(model, int(conf['num_threads']), bool(conf['ort_spin']))
+        elif self.backend == 'onnxruntime_int8':
+            from semfeat_ros.model.quantize import BundledInt8
+
+            self._ort = OrtNetwork(model, int(conf['num_threads']), bool(conf['ort_spin']),
+                                   transform=BundledInt8(int(conf['int8_calibration_frames'])))
         self._mask_cache: dict[tuple, Any] = {}
 
     def _resolve_backend(self) -> str:
-        """'torch' or 'onnxruntime' for the configured ``backend``."""
+        """'torch', 'onnxruntime' or 'onnxruntime_int8' for the configured ``backend``."""
         backend, bf16 = self.conf['backend'], bool(self.conf['bf16'])
         if backend == 'auto':
             return 'onnxruntime' if onnxruntime_available() and not bf16 else 'torch'
-        if backend == 'onnxruntime' and bf16:
+        if backend in ('onnxruntime', 'onnxruntime_int8') and bf16:
             raise ModelConfigError("bf16 autocast needs backend 'torch' (or 'auto')")
         return backend
 
     def _check_conf(self) -> None:
         c = self.conf
-        ints = {'resize_max': 16, 'nms_radius': 0, 'remove_borders': 0, 'num_threads': 1}
+        ints = {'resize_max': 16, 'nms_radius': 0, 'remove_borders': 0, 'num_threads': 1,
+                'int8_calibration_frames': 1}
         for key, low in ints.items():
             if not isinstance(c[key], int) or c[key] < low:
                 raise ModelConfigError(f'{key} must be an integer >= {low}, got {c[key]!r}')
@@ -215,8 +229,8 @@ class FeatureExtractor:
         if not isinstance(c['mask_outside'], int) or not 0 <= c['mask_outside'] <= 255:
             raise ModelConfigError(
                 f'mask_outside must be an integer class id in [0, 255], got {c["mask_outside"]!r}')
-        if c['backend'] not in ('auto', 'torch', 'onnxruntime'):
-            raise ModelConfigError("backend must be 'auto', 'torch' or 'onnxruntime', got "
+        if c['backend'] not in BACKENDS:
+            raise ModelConfigError(f'backend must be one of {", ".join(BACKENDS)}, got '
                                    f'{c["backend"]!r}')
         if c['mask_resolution'] not in ('seg', 'network', 'input'):
             raise ModelConfigError("mask_resolution must be 'seg', 'network' or 'input', got "
@@ -292,11 +306,9 @@ class FeatureExtractor:
                 f'image: sides must be in [16, {MAX_IMAGE_SIDE}] px, got {w}x{h}')
         return image
 
-    def forward(self, image: np.ndarray) -> tuple[dict[str, torch.Tensor], tuple[int, int]]:
-        """Resize ``image`` to the network resolution and run the pure forward.
-
-        Returns ``(pred, (w, h))`` with the SemFeatNet outputs (batch 1) and the network size.
-        """
+    def network_input(self, image: np.ndarray) -> tuple[torch.Tensor, tuple[int, int]]:
+        """``image`` resized to the network resolution and normalised: ``(x, (w, h))`` with
+        ``x`` a (1, 3, h, w) float32 tensor (channels-last when configured)."""
         image = self._check_image(image)
         in_h, in_w = image.shape[:2]
         w, h = self.network_size(in_w, in_h)
@@ -308,6 +320,14 @@ class FeatureExtractor:
         x = normalize_image(torch.from_numpy(np.ascontiguousarray(small)).permute(2, 0, 1)[None])
         if self.conf['channels_last']:
             x = x.contiguous(memory_format=torch.channels_last)
+        return x, (w, h)
+
+    def forward(self, image: np.ndarray) -> tuple[dict[str, torch.Tensor], tuple[int, int]]:
+        """Resize ``image`` to the network resolution and run the pure forward.
+
+        Returns ``(pred, (w, h))`` with the SemFeatNet outputs (batch 1) and the network size.
+        """
+        x, (w, h) = self.network_input(image)
         if self._ort is not None:
             return self._ort(x), (w, h)
         with torch.inference_mode():

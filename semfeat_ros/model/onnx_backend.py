@@ -22,6 +22,7 @@ The intra-op threads do not spin by default: the nodes share the CPU with each o
 from __future__ import annotations
 
 from collections import OrderedDict
+from collections.abc import Callable
 import importlib.util
 import io
 import threading
@@ -48,6 +49,27 @@ def onnxruntime_available() -> bool:
     return all(importlib.util.find_spec(m) is not None for m in ('onnxruntime', 'onnx'))
 
 
+GraphTransform = Callable[[bytes, int, int], bytes]
+"""``(graph, height, width) -> graph``: a rewrite of the exported fp32 graph of one input size
+before its session opens (e.g. :func:`semfeat_ros.model.quantize.quantize_int8`)."""
+
+
+def open_session(graph: bytes, num_threads: int, spin: bool = False) -> Any:
+    """An ONNX Runtime CPU session on the serialized ``graph``: ``num_threads`` intra-op
+    threads, one inter-op thread, all graph optimisations, idle threads spinning only when
+    ``spin``."""
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = int(num_threads)
+    opts.inter_op_num_threads = 1
+    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    opts.log_severity_level = 3  # errors only
+    opts.add_session_config_entry('session.intra_op.allow_spinning', '1' if spin else '0')
+    return ort.InferenceSession(graph, opts, providers=['CPUExecutionProvider'])
+
+
 class _Outputs(nn.Module):
     """SemFeatNet with a tuple of the outputs in :data:`OUTPUTS` (ONNX needs fixed outputs)."""
 
@@ -69,12 +91,15 @@ class OrtNetwork:
         spin: let idle intra-op threads spin-wait (faster alone, slower beside other busy
             processes on few cores).
         max_sessions: input sizes whose sessions are kept (LRU).
+        transform: applied to each exported graph before its session opens (None: the fp32
+            graph as exported).
     Raises:
         ModelConfigError: onnxruntime or onnx is not installed.
     """
 
     def __init__(self, model: nn.Module, num_threads: int, spin: bool = False,
-                 max_sessions: int = MAX_SESSIONS) -> None:
+                 max_sessions: int = MAX_SESSIONS,
+                 transform: GraphTransform | None = None) -> None:
         if not onnxruntime_available():
             raise ModelConfigError("backend 'onnxruntime' needs the onnxruntime and onnx "
                                    "packages (pip install -r requirements.txt); or set backend "
@@ -87,6 +112,7 @@ class OrtNetwork:
         if max_sessions < 1:
             raise ModelConfigError(f'OrtNetwork: max_sessions must be >= 1, got {max_sessions}')
         self.max_sessions = int(max_sessions)
+        self.transform = transform
         self.evicted = 0  # sessions dropped from the cache
         self._sessions: OrderedDict[tuple[int, int], Any] = OrderedDict()  # LRU order
         self._building: dict[tuple[int, int], threading.Event] = {}
@@ -134,19 +160,11 @@ class OrtNetwork:
             event.set()
 
     def _open(self, height: int, width: int) -> Any:
-        import onnxruntime as ort
-
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = self.num_threads
-        opts.inter_op_num_threads = 1
-        opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-        opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        opts.log_severity_level = 3  # errors only
-        opts.add_session_config_entry('session.intra_op.allow_spinning',
-                                      '1' if self.spin else '0')
         with self._export_lock:
             graph = self.export(height, width)
-        return ort.InferenceSession(graph, opts, providers=['CPUExecutionProvider'])
+            if self.transform is not None:
+                graph = self.transform(graph, height, width)
+        return open_session(graph, self.num_threads, self.spin)
 
     def __call__(self, image: torch.Tensor) -> dict[str, torch.Tensor]:
         """Forward of a normalised image.

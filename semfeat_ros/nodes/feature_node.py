@@ -85,9 +85,13 @@ class FeatureNodeConfig:
                              'where the other nodes leave cores free', range=(1, 64),
                              read_only=True)
     backend: str = param('auto', 'Network runtime: onnxruntime (the same weights exported in '
-                         'memory; 1.6-1.8x faster than torch on an AVX2 CPU), torch, or auto '
-                         '(onnxruntime when installed and bf16 is off)',
-                         choices=('auto', 'onnxruntime', 'torch'), read_only=True)
+                         'memory; 1.6-1.8x faster than torch on an AVX2 CPU), '
+                         'onnxruntime_int8 (that graph quantised to int8 at start-up, '
+                         'calibrated on frames of the bundled bag; see '
+                         'semfeat_ros.model.quantize), torch, or auto (onnxruntime when '
+                         'installed and bf16 is off)',
+                         choices=('auto', 'onnxruntime', 'onnxruntime_int8', 'torch'),
+                         read_only=True)
     max_keypoints: int = param(1000, 'Keypoints kept per frame (top-k by score; xfeat, sift, '
                                'orb: before the drop_classes are removed)',
                                range=(16, 8192), read_only=True)
