@@ -186,3 +186,29 @@ def test_int8_backend_conf_errors(net: SemFeatNet) -> None:
                                'drop_classes': []})
     with pytest.raises(ModelConfigError, match='onnxruntime_int8'):
         FeatureExtractor(net, {'backend': 'int4', 'drop_classes': []})
+
+
+def test_float_heads_keep_the_output_layers_unquantised(fp32_graph: bytes) -> None:
+    import onnx
+
+    model = onnx.load_from_string(fp32_graph)
+    heads = q.head_nodes(model)
+    by_name = {n.name: n for n in model.graph.node}
+    convs = [n for n in heads if by_name[n].op_type == 'Conv']
+    assert len(convs) >= 3  # at least one final convolution per output
+    assert len(heads) < len(model.graph.node) // 3  # only the tails, not the trunk
+    calib = [q.network_array(im) for im in _images(2, (96, 64))]
+    for float_heads in (True, False):
+        qm = onnx.load_from_string(q.quantize_int8(fp32_graph, calib, float_heads=float_heads))
+        weights_dq = {n.output[0] for n in qm.graph.node if n.op_type == 'DequantizeLinear'}
+        plain = [n.name for n in qm.graph.node
+                 if n.op_type == 'Conv' and n.input[1] not in weights_dq]
+        assert sorted(plain) == (sorted(convs) if float_heads else [])
+
+
+def test_torch_bf16_runner_is_close_to_fp32(net: SemFeatNet, fp32_graph: bytes) -> None:
+    x = q.network_array(_images(1, (96, 64), seed=4)[0])
+    ref = q._run(open_session(fp32_graph, 1), x)
+    out = q._run(q.TorchBf16(net), x)
+    acc = q.compare_outputs(ref, out, k=200, threshold=0.0)
+    assert 0.98 < acc['desc_cos_mean'] < 1.0 - 1e-7

@@ -2,7 +2,7 @@
 
 usage: python -m semfeat_ros.model.quantize [--sim-train DIR] [--photos DIR] [--sim-val DIR]
            [--real DIR] [--calib-sim N] [--calib-photos N] [--frames N] [--repeats N]
-           [--threads T] [--no-fp16] [--out results.json]
+           [--threads T] [--no-fp16] [--no-bf16] [--out results.json]
 
 The fp32 graph is the one :class:`~semfeat_ros.model.onnx_backend.OrtNetwork` exports in memory
 from the safetensors weights (BatchNorm folded). From it:
@@ -10,12 +10,16 @@ from the safetensors weights (BatchNorm folded). From it:
 * **int8** (:func:`quantize_int8`): ``onnxruntime.quantization.quantize_static`` in the QDQ
   format, weights int8 per output channel, activations uint8 (the u8s8 pairing of the x86
   integer kernels), activation ranges calibrated (min / max) on network inputs of the target
-  size. The study calibrates on rendered frames of the training shards and real photographs
-  (never the evaluation frames); :class:`BundledInt8` (the extractor's ``onnxruntime_int8``
-  backend) on frames of the bundled bag, the only frames a fresh clone has.
+  size, the heads' final layers kept float32 (:func:`head_nodes`). The study calibrates on
+  rendered frames of the training shards and real photographs (never the evaluation frames);
+  :class:`BundledInt8` (the extractor's ``onnxruntime_int8`` backend) on frames of the
+  bundled bag, the only frames a fresh clone has.
 * **fp16** (:func:`convert_fp16`): weights and activations float16 with float32 inputs and
   outputs (``onnxruntime.transformers.float16``); ONNX Runtime's CPU provider runs the
   operators it has no float16 kernel for behind inserted casts.
+* **bf16** (:class:`TorchBf16`): ONNX Runtime's CPU provider has no bfloat16 convolution, so
+  this is the extractor's other bf16 path: torch eager, channels-last, ``torch.autocast``
+  bfloat16 (the ``bf16`` conf key of the torch backend).
 
 :func:`measure_speed` times the sessions interleaved frame by frame (median ms, ratio to fp32);
 :func:`compare_outputs` scores a variant against fp32 on the same input: descriptor cosine at
@@ -27,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Iterable, Sequence
+import copy
 import json
 from pathlib import Path
 import sys
@@ -148,8 +153,26 @@ class _Reader:
         return None if x is None else {'image': x}
 
 
+def head_nodes(model: Any) -> list[str]:
+    """Names of the nodes between the graph's outputs and the last convolution of each head
+    (those convolutions included): the output heads' final layers."""
+    producer = {o: n for n in model.graph.node for o in n.output}
+    names: list[str] = []
+    stack = [o.name for o in model.graph.output]
+    seen: set[str] = set()
+    while stack:
+        node = producer.get(stack.pop())
+        if node is None or node.name in seen:
+            continue
+        seen.add(node.name)
+        names.append(node.name)
+        if node.op_type != 'Conv':
+            stack += [i for i in node.input if i]
+    return names
+
+
 def quantize_int8(graph: bytes, calibration: Iterable[np.ndarray],
-                  per_channel: bool = True) -> bytes:
+                  per_channel: bool = True, float_heads: bool = True) -> bytes:
     """Static int8 QDQ graph of the fp32 ``graph``.
 
     Args:
@@ -157,6 +180,9 @@ def quantize_int8(graph: bytes, calibration: Iterable[np.ndarray],
         calibration: network inputs (1, 3, H, W) float32 of that size; their activation
             minima / maxima set the activation scales.
         per_channel: one weight scale per output channel (else per tensor).
+        float_heads: keep the heads' final layers (:func:`head_nodes`: the last convolution of
+            each head and what follows it) in float32, so the heatmap, descriptors and
+            segmentation logits are not rounded to 256 levels.
     Returns:
         The serialized QDQ graph (weights int8, activations uint8).
     Raises:
@@ -179,10 +205,12 @@ def quantize_int8(graph: bytes, calibration: Iterable[np.ndarray],
         src.write_bytes(graph)
         try:
             quant_pre_process(str(src), str(pre), skip_symbolic_shape=True)
+            exclude = head_nodes(onnx.load(str(pre))) if float_heads else None
             quantize_static(str(pre), str(dst), _Reader(inputs),
                             quant_format=QuantFormat.QDQ, per_channel=per_channel,
                             activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
-                            calibrate_method=CalibrationMethod.MinMax)
+                            calibrate_method=CalibrationMethod.MinMax,
+                            nodes_to_exclude=exclude)
         except (RuntimeError, ValueError, onnx.checker.ValidationError) as exc:
             raise QuantizationError(f'int8 quantisation failed: {exc}') from exc
         return dst.read_bytes()
@@ -212,6 +240,20 @@ class BundledInt8:
             self._images = bundled_bag_frames(self.frames)
         return quantize_int8(graph, [network_array(fit_frame(im, (width, height)))
                                      for im in self._images])
+
+
+class TorchBf16:
+    """The network in torch under bfloat16 autocast (channels-last), with the ``run`` call of
+    an ONNX Runtime session so :func:`measure_speed` and :func:`compare_outputs` take it."""
+
+    def __init__(self, model: torch.nn.Module) -> None:
+        self.model = copy.deepcopy(model).eval().to(memory_format=torch.channels_last)
+
+    def run(self, names: Sequence[str], feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
+        x = torch.from_numpy(feeds['image']).contiguous(memory_format=torch.channels_last)
+        with torch.inference_mode(), torch.autocast('cpu', dtype=torch.bfloat16):
+            pred = self.model(x)
+        return [pred[n].float().contiguous().numpy() for n in names]
 
 
 def _run(sess: Any, x: np.ndarray) -> dict[str, np.ndarray]:
@@ -295,13 +337,17 @@ def compare_outputs(ref: dict[str, np.ndarray], out: dict[str, np.ndarray], k: i
 
 
 def _build(fp32: bytes, size: tuple[int, int], calib: Sequence[np.ndarray], fp16: bool,
-           threads: int) -> dict[str, Any]:
-    """Sessions fp32 / int8 (/ fp16) at network size ``size`` = (w, h) px."""
+           threads: int, bf16_model: torch.nn.Module | None = None) -> dict[str, Any]:
+    """Sessions fp32 / int8 (/ fp16) at network size ``size`` = (w, h) px, and the torch
+    bf16 runner of ``bf16_model`` when given."""
     graphs = {'fp32': fp32,
               'int8': quantize_int8(fp32, [network_array(fit_frame(im, size)) for im in calib])}
     if fp16:
         graphs['fp16'] = convert_fp16(fp32)
-    return {n: open_session(g, threads) for n, g in graphs.items()}
+    sessions: dict[str, Any] = {n: open_session(g, threads) for n, g in graphs.items()}
+    if bf16_model is not None:
+        sessions['bf16_torch'] = TorchBf16(bf16_model)
+    return sessions
 
 
 def _accuracy(sessions: dict[str, Any], images: Sequence[np.ndarray], size: tuple[int, int],
@@ -319,8 +365,8 @@ def _accuracy(sessions: dict[str, Any], images: Sequence[np.ndarray], size: tupl
 
 
 def study(sim_train: Path, photos: Path, sim_val: Path, real: Path | None, calib_sim: int,
-          calib_photos: int, frames: int, repeats: int, threads: int, fp16: bool, seed: int,
-          progress: bool) -> dict[str, Any]:
+          calib_photos: int, frames: int, repeats: int, threads: int, fp16: bool, bf16: bool,
+          seed: int, progress: bool) -> dict[str, Any]:
     """Build the variants, time them at 640x512 and compare them with fp32 on held-out
     rendered frames (``sim_val`` shards, 640x512) and on the real frames in ``real`` (at the
     network size the extractor gives them). Returns the numbers as a JSON-able dict."""
@@ -333,6 +379,7 @@ def study(sim_train: Path, photos: Path, sim_val: Path, real: Path | None, calib
     ortnet = fx._ort
     if ortnet is None:
         raise QuantizationError('the onnxruntime backend is not available')
+    bf16_model = fx.model if bf16 else None  # BatchNorm folded, as the graph
     calib = (shard_frames(sorted(Path(sim_train).glob('*.npz')), calib_sim, rng)
              + folder_images(Path(photos), calib_photos, rng))
     if not calib:
@@ -347,7 +394,7 @@ def study(sim_train: Path, photos: Path, sim_val: Path, real: Path | None, calib
                         'photos': len(calib) - min(calib_sim, len(calib))},
         'size': list(size)}
     t0 = time.perf_counter()
-    sessions = _build(ortnet.export(size[1], size[0]), size, calib, fp16, threads)
+    sessions = _build(ortnet.export(size[1], size[0]), size, calib, fp16, threads, bf16_model)
     res['build_s'] = time.perf_counter() - t0
     inputs = [network_array(fit_frame(im, size)) for im in held]
     res['speed'] = measure_speed(sessions, inputs, repeats, progress)
@@ -359,7 +406,8 @@ def study(sim_train: Path, photos: Path, sim_val: Path, real: Path | None, calib
         real_imgs = folder_images(Path(real), 10 ** 6)
         if real_imgs:
             rsize = fx.network_size(real_imgs[0].shape[1], real_imgs[0].shape[0])
-            rs = _build(ortnet.export(rsize[1], rsize[0]), rsize, calib, fp16, threads)
+            rs = _build(ortnet.export(rsize[1], rsize[0]), rsize, calib, fp16, threads,
+                        bf16_model)
             res['accuracy']['real'] = _accuracy(rs, real_imgs, rsize, k, thr, 'accuracy real',
                                                 progress)
             res['accuracy']['real_frames'] = len(real_imgs)
@@ -386,6 +434,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--repeats', type=int, default=2, help='timed passes over the frames')
     p.add_argument('--threads', type=int, default=2, help='ONNX Runtime intra-op threads')
     p.add_argument('--no-fp16', action='store_true', help='skip the fp16 variant')
+    p.add_argument('--no-bf16', action='store_true', help='skip the torch bf16 variant')
     p.add_argument('--seed', type=int, default=0, help='frame draw seed')
     p.add_argument('--out', type=Path, default=None, help='write the results as JSON here')
     p.add_argument('--quiet', action='store_true', help='no progress bars')
@@ -403,7 +452,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 2
     try:
         res = study(a.sim_train, a.photos, a.sim_val, a.real, a.calib_sim, a.calib_photos,
-                    a.frames, a.repeats, a.threads, not a.no_fp16, a.seed, not a.quiet)
+                    a.frames, a.repeats, a.threads, not a.no_fp16, not a.no_bf16, a.seed,
+                    not a.quiet)
     except (QuantizationError, OSError) as exc:
         print(f'quantize: error: {exc}', file=sys.stderr)
         return 1
