@@ -149,8 +149,9 @@ class FeatureExtractor:
         'backend': 'auto',  # forward on 'torch' (eager), 'onnxruntime' (the same weights
         #                     exported in memory, 1.6-1.8x faster on an AVX2 CPU),
         #                     'onnxruntime_int8' (that graph statically quantised to int8 at
-        #                     start-up, semfeat_ros.model.quantize) or 'auto': onnxruntime
-        #                     when installed and bf16 is off, else torch
+        #                     start-up; measured no faster and slightly less accurate, see
+        #                     semfeat_ros.model.quantize) or 'auto': onnxruntime when
+        #                     installed and bf16 is off, else torch
         'int8_calibration_frames': 16,  # onnxruntime_int8: frames of the bundled bag that
         #                                 calibrate the activation ranges (per input size)
         'ort_spin': False,  # onnxruntime: idle threads spin-wait (faster alone, slower beside

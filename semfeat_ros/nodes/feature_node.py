@@ -87,7 +87,8 @@ class FeatureNodeConfig:
     backend: str = param('auto', 'Network runtime: onnxruntime (the same weights exported in '
                          'memory; 1.6-1.8x faster than torch on an AVX2 CPU), '
                          'onnxruntime_int8 (that graph quantised to int8 at start-up, '
-                         'calibrated on frames of the bundled bag; see '
+                         'calibrated on frames of the bundled bag; no faster than onnxruntime '
+                         'on an AVX-512 VNNI CPU and slightly less accurate, see '
                          'semfeat_ros.model.quantize), torch, or auto (onnxruntime when '
                          'installed and bf16 is off)',
                          choices=('auto', 'onnxruntime', 'onnxruntime_int8', 'torch'),
