@@ -310,17 +310,20 @@ def test_shipped_config_files_match_the_code() -> None:
     stage5 = load_train_conf(read_config(REPO / 'config' / 'distill.yaml'))
     assert stage5['network'] == shipped.conf and stage5['teacher'] == 'xfeat'
     stage6 = load_train_conf(read_config(REPO / 'config' / 'distill_long.yaml'))
-    stage7 = load_train_conf(read_config(REPO / 'config' / 'distill_stage7.yaml'))  # shipped
+    stage7 = load_train_conf(read_config(REPO / 'config' / 'distill_stage7.yaml'))
+    stage8 = load_train_conf(read_config(REPO / 'config' / 'distill_stage8.yaml'))  # shipped
     assert stage6['init_weights'] == stage5['init_weights'].replace('train_v9', 'train_v10')
     assert stage7['init_weights'] == stage6['init_weights'].replace('train_v10', 'train_v11')
-    for stage in (stage6, stage7):  # stage 5's recipe with more photos and distillation
+    assert stage8['init_weights'] == stage7['init_weights'].replace('train_v11', 'train_v12')
+    for stage in (stage6, stage7, stage8):  # stage 5's recipe with more photos and distillation
         assert stage['network'] == shipped.conf and stage['teacher'] == 'xfeat'
         assert stage['loss']['distill_desc_weight'] > stage5['loss']['distill_desc_weight']
         assert stage['data']['pair_mix']['photo'] > stage5['data']['pair_mix']['photo']
-    assert {k: v for k, v in stage6.items() if k not in ('init_weights', 'steps')} == \
-        {k: v for k, v in stage7.items() if k not in ('init_weights', 'steps')}
-    assert meta['training']['init_weights'] == stage7['init_weights']
-    assert meta['training']['train_only'] == stage7['train_only']
+    for stage in (stage7, stage8):  # stage 6's recipe, continued from the previous weights
+        assert {k: v for k, v in stage6.items() if k not in ('init_weights', 'steps')} == \
+            {k: v for k, v in stage.items() if k not in ('init_weights', 'steps')}
+    assert meta['training']['init_weights'] == stage8['init_weights']
+    assert meta['training']['train_only'] == stage8['train_only']
     assert meta['training']['teacher'] == 'xfeat'
     assert stage5['train_only'] == [] and stage5['warmup_fraction'] == 0.0  # the whole network
     assert stage5['init_weights'] == stage4['init_weights'].replace('train_v8', 'train_v9')

@@ -27,8 +27,9 @@ the same cells, overlap of the top-k keypoints after NMS and segmentation label 
 Nothing is written but ``--out``; the graphs live in memory (the quantiser's own temporary
 files are in a temporary directory, removed afterwards).
 
-Measured on the 2-core Xeon (avx512_vnni, amx_int8, amx_bf16) with ONNX Runtime 1.32 and the
-shipped weights while a training job shared the CPU (1-minute load average 2-4), by
+Measured on the 2-core Xeon (avx512_vnni, amx_int8, amx_bf16) with ONNX Runtime 1.32 and
+stage 7's weights (``config/distill_stage7.yaml``) while a training job shared the CPU
+(1-minute load average 2-4), by
 ``python -m semfeat_ros.model.quantize --real ../shared/data/real_fisheye_calib``
 (32 rendered + 32 photo calibration frames, 24 held-out rendered frames at 640x512, the 24
 real fisheye frames at 640x416, 2 threads):
