@@ -1,7 +1,9 @@
 """Where the package's shipped files live, in a source checkout and in an ament install."""
 from __future__ import annotations
 
+import os
 from pathlib import Path
+import tempfile
 
 PACKAGE = 'semfeat_ros'
 
@@ -30,3 +32,16 @@ def config_path(name: str) -> Path:
     if not path.is_file():
         raise FileNotFoundError(f'shipped config file not found: {path}')
     return path
+
+
+def write_text_atomic(path: Path, text: str) -> None:
+    """Write ``text`` (UTF-8) to ``path`` through a temporary file in its directory renamed over
+    it: a reader sees the old file or the new one, never half of one."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f'.{path.name}.', suffix='.tmp')
+    try:
+        with os.fdopen(fd, 'w', encoding='utf-8') as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise

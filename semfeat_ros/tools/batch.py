@@ -48,6 +48,7 @@ from typing import Any
 from semfeat_ros.offline.bag import STORAGE_SUFFIXES, one_line
 from semfeat_ros.offline.errors import OutputPathError
 from semfeat_ros.offline.paths import confined, prepare_out_dir
+from semfeat_ros.paths import write_text_atomic
 from semfeat_ros.tools.cli import OneLineParser
 
 PROG = 'semfeat-batch'
@@ -346,28 +347,8 @@ def read_marker(job: StepJob) -> StepOutcome | None:
 
 
 def _write_json(path: Path, data: Any) -> None:
-    """Write ``data`` to ``path`` through a temporary file renamed over it (never half a
-    file)."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f'.{path.name}.', suffix='.tmp')
-    try:
-        with os.fdopen(fd, 'w', encoding='utf-8') as f:
-            json.dump(data, f, indent=2)
-            f.write('\n')
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def _write_text(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f'.{path.name}.', suffix='.tmp')
-    try:
-        with os.fdopen(fd, 'w', encoding='utf-8') as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    """Write ``data`` to ``path`` as indented JSON, atomically (never half a file)."""
+    write_text_atomic(path, json.dumps(data, indent=2) + '\n')
 
 
 # ----------------------------------------------------------------------------- the task
@@ -897,7 +878,7 @@ def write_summary(s: BatchSummary, out_dir: Path) -> None:
     paths = {'json': confined(out_dir, SUMMARY_JSON), 'markdown': confined(out_dir, SUMMARY_MD)}
     s.files = {k: str(p) for k, p in paths.items()}
     _write_json(paths['json'], asdict(s))
-    _write_text(paths['markdown'], summary_markdown(s))
+    write_text_atomic(paths['markdown'], summary_markdown(s))
 
 
 # ----------------------------------------------------------------------------- command line

@@ -20,16 +20,15 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 import json
 import math
-import os
 from pathlib import Path
 import re
 import sys
-import tempfile
 from typing import Any
 
 import yaml
 
 from semfeat_ros.conf import merge_conf
+from semfeat_ros.paths import write_text_atomic
 from semfeat_ros.tools.cli import OneLineParser, error_line
 from semfeat_ros.tools.errors import (
     ReportError,
@@ -270,18 +269,11 @@ def render_document(text: str, tables: Mapping[str, str]) -> str:
 
 
 def write_atomic(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` through a temporary file in its directory, renamed into place;
+    """Write ``text`` to ``path`` atomically (:func:`~semfeat_ros.paths.write_text_atomic`);
     refuses a symbolic link (the document is the only file written)."""
     if path.is_symlink():
         raise ReportOutputError(f'{path} is a symbolic link; refusing to write through it')
-    fd, tmp = tempfile.mkstemp(prefix=f'.{path.name}.', dir=path.parent)
-    try:
-        with os.fdopen(fd, 'w', encoding='utf-8') as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_text_atomic(path, text)
 
 
 @dataclass(frozen=True)
