@@ -14,6 +14,7 @@ from semfeat_ros.model.errors import ModelConfigError, ModelInputError
 from semfeat_ros.model.losses import (
     MultiTaskLoss,
     descriptor_loss,
+    dual_softmax_loss,
     keypoint_cell_loss,
     keypoint_loss,
     lovasz_softmax_loss,
@@ -409,6 +410,35 @@ def test_descriptor_loss_hand_computed() -> None:
     # invalid rows are ignored entirely; no valid row -> 0
     loss_none, _ = descriptor_loss(da, db, pts, pts, torch.zeros_like(valid))
     assert loss_none.item() == 0.0
+
+
+def test_dual_softmax_loss_hand_computed() -> None:
+    da, db, pts, valid = _three_cell_maps()
+    t = 0.5
+    loss = dual_softmax_loss(da, db, pts, pts, valid, temperature=t, neg_radius=4.0)
+    sim = np.array([[0.6, 0.0, -1.0], [0.8, 1.0, 0.0], [0.6, 0.0, -1.0]]) / t
+    row = np.log(np.exp(sim).sum(axis=1)) - np.diag(sim)  # a_i against every b_j
+    col = np.log(np.exp(sim).sum(axis=0)) - np.diag(sim)  # b_i against every a_j
+    assert loss.item() == pytest.approx(0.5 * (row.mean() + col.mean()), abs=1e-5)
+    # a radius covering every point leaves each point alone with its partner: NLL 0
+    alone = dual_softmax_loss(da, db, pts, pts, valid, temperature=t, neg_radius=100.0)
+    assert alone.item() == pytest.approx(0.0, abs=1e-6)
+    # an invalid point is neither scored nor a negative of the others
+    part = torch.tensor([[True, True, False]])
+    keep = [0, 1]
+    s2 = sim[np.ix_(keep, keep)]
+    row2 = np.log(np.exp(s2).sum(axis=1)) - np.diag(s2)
+    col2 = np.log(np.exp(s2).sum(axis=0)) - np.diag(s2)
+    assert dual_softmax_loss(da, db, pts, pts, part, t, 4.0).item() == pytest.approx(
+        0.5 * (row2.mean() + col2.mean()), abs=1e-5)
+    assert dual_softmax_loss(da, db, pts, pts, torch.zeros_like(valid)).item() == 0.0
+    # swapping the partners of two points raises the loss
+    swapped = dual_softmax_loss(da, db, pts, pts[:, [1, 0, 2]], valid, t, 4.0)
+    assert swapped.item() > loss.item()
+    with pytest.raises(ModelConfigError, match='temperature'):
+        dual_softmax_loss(da, db, pts, pts, valid, temperature=0.0)
+    with pytest.raises(ModelConfigError, match='desc_dsm_temperature'):
+        MultiTaskLoss({'desc_dsm_temperature': 0.0})
 
 
 def test_segmentation_loss_ignores_255() -> None:

@@ -322,6 +322,14 @@ def test_shipped_config_files_match_the_code() -> None:
     for stage in (stage7, stage8):  # stage 6's recipe, continued from the previous weights
         assert {k: v for k, v in stage6.items() if k not in ('init_weights', 'steps')} == \
             {k: v for k, v in stage.items() if k not in ('init_weights', 'steps')}
+    stage9 = load_train_conf(read_config(REPO / 'config' / 'distill_stage9.yaml'))
+    assert stage9['init_weights'] == stage8['init_weights'].replace('train_v12', 'train_v13')
+    assert stage9['loss']['desc_dsm_weight'] > 0 == stage8['loss']['desc_dsm_weight']
+    dsm = ('desc_dsm_weight', 'desc_dsm_temperature')
+    assert {k: v for k, v in stage8['loss'].items() if k not in dsm} == \
+        {k: v for k, v in stage9['loss'].items() if k not in dsm}  # stage 8's + the dual softmax
+    assert {k: v for k, v in stage8.items() if k not in ('init_weights', 'steps', 'loss')} == \
+        {k: v for k, v in stage9.items() if k not in ('init_weights', 'steps', 'loss')}
     assert meta['training']['init_weights'] == stage8['init_weights']
     assert meta['training']['train_only'] == stage8['train_only']
     assert meta['training']['teacher'] == 'xfeat'

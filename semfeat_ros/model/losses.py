@@ -47,6 +47,9 @@ default_loss_conf: dict[str, Any] = {
     #                              descriptor map, every covered cell); needs a teacher
     'distill_kp_weight': 0.0,  # weight of L_distill_kp (cross-entropy of each cell's 65-way
     #                            distribution against the teacher's); needs a teacher
+    'desc_dsm_weight': 0.0,  # weight of L_dsm, the dual-softmax matching NLL of each pair's
+    #                          correspondences (see dual_softmax_loss); 0: off (the paper)
+    'desc_dsm_temperature': 0.1,  # cosine similarities are divided by this before the softmax
     'kp_photo_targets': 1.0,  # 1: the ground-truth keypoint terms also train on photo pairs
     #                           (homographically adapted corners); 0: photos' keypoints are
     #                           learnt from the teacher only
@@ -264,6 +267,49 @@ def descriptor_loss(desc_a: torch.Tensor, desc_b: torch.Tensor, points_a: torch.
     return pos_term + neg_term, stats
 
 
+def dual_softmax_loss(desc_a: torch.Tensor, desc_b: torch.Tensor, points_a: torch.Tensor,
+                      points_b: torch.Tensor, valid: torch.Tensor, temperature: float = 0.1,
+                      neg_radius: float = 8.0) -> torch.Tensor:
+    """Dual-softmax matching NLL of the ground-truth correspondences.
+
+    Mutual nearest-neighbour matching succeeds when a point's true partner is the most similar
+    candidate in both directions; this loss asks for that directly: with ``S = sim / T`` over
+    the pair's sampled points, the negative log-likelihood of the true partner under the row
+    softmax (a_i against every b_j) plus the column softmax (b_i against every a_j). Candidates
+    closer than ``neg_radius`` px to the true match in either view are left out of both
+    softmaxes (they share interpolation support with the partner on the stride-8 grid).
+
+    Args:
+        desc_a, desc_b: (B, D, h, w) unit-norm descriptor maps of the two views.
+        points_a, points_b: (B, M, 2) corresponding (u, v) px in view a and view b.
+        valid: (B, M) bool, correspondence exists (padding rows are False).
+        temperature: T > 0 dividing the cosine similarities.
+        neg_radius: px, exclusion radius around the true match.
+    Returns:
+        scalar: mean over valid points and both directions (0 if no valid pair).
+    """
+    if points_a.shape != points_b.shape or points_a.shape[:2] != valid.shape:
+        raise ModelInputError(
+            f'dual_softmax_loss: points_a {tuple(points_a.shape)}, points_b '
+            f'{tuple(points_b.shape)}, valid {tuple(valid.shape)} must agree (B, M, 2)/(B, M)')
+    if temperature <= 0:
+        raise ModelConfigError(f'dual_softmax_loss: temperature must be > 0, got {temperature!r}')
+    da = sample_descriptors(desc_a, points_a)
+    db = sample_descriptors(desc_b, points_b)
+    logits = (da @ db.transpose(1, 2)).float() / temperature  # (B, M, M)
+    m = logits.shape[-1]
+    eye = torch.eye(m, dtype=torch.bool, device=logits.device)[None]
+    near = (torch.cdist(points_a, points_a) <= neg_radius) | \
+        (torch.cdist(points_b, points_b) <= neg_radius)
+    keep = (valid[:, None, :] & valid[:, :, None] & ~near) | eye
+    logits = logits.masked_fill(~keep, float('-inf'))
+    nll_ab = -F.log_softmax(logits, dim=2).diagonal(dim1=1, dim2=2)  # (B, M)
+    nll_ba = -F.log_softmax(logits, dim=1).diagonal(dim1=1, dim2=2)
+    if not valid.any():
+        return logits.new_zeros(()) + desc_a.sum() * 0.0
+    return 0.5 * (nll_ab[valid].mean() + nll_ba[valid].mean())
+
+
 def _on_loss_grid(logits: torch.Tensor, labels: torch.Tensor, stride: int
                   ) -> tuple[torch.Tensor, torch.Tensor]:
     """Logits (B, C, h, w) and labels (B, H, W) on the loss grid of ``stride`` px (see
@@ -402,6 +448,9 @@ class MultiTaskLoss:
         if conf['kp_photo_targets'] not in (0, 1):
             raise ModelConfigError(f'loss.kp_photo_targets must be 0 or 1, got '
                                    f'{conf["kp_photo_targets"]!r}')
+        if conf['desc_dsm_temperature'] <= 0:
+            raise ModelConfigError(f'loss.desc_dsm_temperature must be > 0, got '
+                                   f'{conf["desc_dsm_temperature"]!r}')
         if conf['seg_max_class_weight'] < 1:
             raise ModelConfigError(f'loss.seg_max_class_weight must be >= 1, got '
                                    f'{conf["seg_max_class_weight"]!r}')
@@ -438,6 +487,11 @@ class MultiTaskLoss:
             desc[:half], desc[half:], batch['points_a'], batch['points_b'], batch['corr_valid'],
             c['desc_pos_margin'], c['desc_neg_margin'], c['desc_neg_radius'],
             c['desc_negatives'])
+        l_dsm = None
+        if c['desc_dsm_weight'] > 0:
+            l_dsm = dual_softmax_loss(
+                desc[:half], desc[half:], batch['points_a'], batch['points_b'],
+                batch['corr_valid'], c['desc_dsm_temperature'], c['desc_neg_radius'])
         l_seg = segmentation_loss(pred['segmentation_logits'], batch['label'],
                                   class_weights=self.class_weights,
                                   stride=c['seg_loss_stride'])
@@ -447,6 +501,8 @@ class MultiTaskLoss:
                                            stride=c['seg_loss_stride'])
             l_seg = l_seg + c['seg_lovasz_weight'] * l_lovasz
         total = c['w_kp'] * l_kp + c['w_desc'] * l_desc + c['w_seg'] * l_seg
+        if l_dsm is not None:
+            total = total + c['desc_dsm_weight'] * l_dsm
         distill = {}
         if 'teacher_desc' in batch and c['distill_desc_weight'] > 0:
             distill['distill_desc'] = distill_descriptor_loss(desc, batch['teacher_desc'],
@@ -463,5 +519,7 @@ class MultiTaskLoss:
             logs['kp_cell'] = float(l_cell.detach())
         if l_lovasz is not None:
             logs['seg_lovasz'] = float(l_lovasz.detach())
+        if l_dsm is not None:
+            logs['dsm'] = float(l_dsm.detach())
         logs.update({k: float(v.detach()) for k, v in distill.items()})
         return total, logs

@@ -716,6 +716,9 @@ def model_card(model: SemFeatNet, meta: dict[str, Any], conf: dict[str, Any],
                 if conf['warmup_fraction'] > 0 else 'cosine decay after the ramp')
     lw = conf['loss'].get('seg_lovasz_weight', 0.0)
     lovasz = f'; + Lovasz-softmax (weight {lw}) on the same grid' if lw else ''
+    dw = conf['loss'].get('desc_dsm_weight', 0.0)
+    dsm = (f'; + the dual-softmax matching NLL of the correspondences (weight {dw}, temperature '
+           f"{conf['loss'].get('desc_dsm_temperature')})" if dw else '')
     ref = net.get('kp_refine_channels', 0)
     refine = (f' + a full-resolution correction (3 x 3x3 conv, {ref} channels, on the grey '
               'input and those logits)' if ref else '')
@@ -787,8 +790,9 @@ weights: kp {conf['loss']['w_kp']}, desc {conf['loss']['w_desc']}, seg {conf['lo
 BCE positive weight {conf['loss']['kp_pos_weight']}, cell softmax CE weight
 {conf['loss'].get('kp_cell_weight', 0.0)}; descriptor margins m =
 {conf['loss']['desc_pos_margin']}, alpha = {conf['loss']['desc_neg_margin']}, negatives
-`{conf['loss']['desc_negatives']}` beyond {conf['loss']['desc_neg_radius']} px; segmentation CE
-class weights (median frequency / frequency) ** {conf['loss']['seg_class_balance']} clipped to
+`{conf['loss']['desc_negatives']}` beyond {conf['loss']['desc_neg_radius']} px{dsm};
+segmentation CE class weights (median frequency / frequency) **
+{conf['loss']['seg_class_balance']} clipped to
 {conf['loss']['seg_max_class_weight']}: {t.get('seg_class_weights')}{lovasz}.{distill}{finetune}
 
 Rebuild: {rebuild}`semfeat-train --config {config_name} --out {out} --export semfeat_ros/weights`.
