@@ -197,6 +197,27 @@ def sample_descriptors(desc: torch.Tensor, points: torch.Tensor,
     return F.normalize(out[:, :, 0].transpose(1, 2), p=2, dim=-1, eps=1e-8)
 
 
+def _pair_similarity(caller: str, desc_a: torch.Tensor, desc_b: torch.Tensor,
+                     points_a: torch.Tensor, points_b: torch.Tensor, valid: torch.Tensor,
+                     neg_radius: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The pair's sampled similarities and which candidates lie far from the true match.
+
+    Args: as :func:`descriptor_loss` (``caller`` names it in the shape error).
+    Returns:
+        ``(sim, far)``: (B, M, M) ``sim[b, i, j] = <a_i, b_j>`` and (B, M, M) bool, point j
+        farther than ``neg_radius`` px from point i in both views.
+    """
+    if points_a.shape != points_b.shape or points_a.shape[:2] != valid.shape:
+        raise ModelInputError(
+            f'{caller}: points_a {tuple(points_a.shape)}, points_b '
+            f'{tuple(points_b.shape)}, valid {tuple(valid.shape)} must agree (B, M, 2)/(B, M)')
+    da = sample_descriptors(desc_a, points_a)
+    db = sample_descriptors(desc_b, points_b)
+    far = (torch.cdist(points_a, points_a) > neg_radius) & \
+        (torch.cdist(points_b, points_b) > neg_radius)
+    return da @ db.transpose(1, 2), far
+
+
 def descriptor_loss(desc_a: torch.Tensor, desc_b: torch.Tensor, points_a: torch.Tensor,
                     points_b: torch.Tensor, valid: torch.Tensor, pos_margin: float = 1.0,
                     neg_margin: float = 0.2, neg_radius: float = 8.0, negatives: str = 'hardest'
@@ -223,13 +244,8 @@ def descriptor_loss(desc_a: torch.Tensor, desc_b: torch.Tensor, points_a: torch.
         ``(loss, stats)``: scalar loss (mean positive term + mean negative term, 0 if no valid
         pair) and detached statistics ``pos_sim``, ``neg_sim`` (means).
     """
-    if points_a.shape != points_b.shape or points_a.shape[:2] != valid.shape:
-        raise ModelInputError(
-            f'descriptor_loss: points_a {tuple(points_a.shape)}, points_b '
-            f'{tuple(points_b.shape)}, valid {tuple(valid.shape)} must agree (B, M, 2)/(B, M)')
-    da = sample_descriptors(desc_a, points_a)
-    db = sample_descriptors(desc_b, points_b)
-    sim = da @ db.transpose(1, 2)  # (B, M, M): sim[b, i, j] = <a_i, b_j>
+    sim, far = _pair_similarity('descriptor_loss', desc_a, desc_b, points_a, points_b, valid,
+                                neg_radius)
     pos = sim.diagonal(dim1=1, dim2=2)  # (B, M)
     vf = valid.to(sim.dtype)
     n_valid = vf.sum()
@@ -237,9 +253,7 @@ def descriptor_loss(desc_a: torch.Tensor, desc_b: torch.Tensor, points_a: torch.
         zero = sim.sum() * 0.0
         return zero, {'pos_sim': zero.detach(), 'neg_sim': zero.detach()}
     # negatives must be valid points farther than neg_radius from the true match in *both* views
-    far_b = torch.cdist(points_b, points_b) > neg_radius  # (B, M, M)
-    far_a = torch.cdist(points_a, points_a) > neg_radius
-    cand = far_a & far_b & valid[:, None, :] & valid[:, :, None]
+    cand = far & valid[:, None, :] & valid[:, :, None]
     masked = sim.masked_fill(~cand, -2.0)
     hard_ab = masked.max(dim=2).values  # hardest b_j for each a_i
     hard_ba = masked.max(dim=1).values  # hardest a_j for each b_i
@@ -288,25 +302,17 @@ def dual_softmax_loss(desc_a: torch.Tensor, desc_b: torch.Tensor, points_a: torc
     Returns:
         scalar: mean over valid points and both directions (0 if no valid pair).
     """
-    if points_a.shape != points_b.shape or points_a.shape[:2] != valid.shape:
-        raise ModelInputError(
-            f'dual_softmax_loss: points_a {tuple(points_a.shape)}, points_b '
-            f'{tuple(points_b.shape)}, valid {tuple(valid.shape)} must agree (B, M, 2)/(B, M)')
     if temperature <= 0:
         raise ModelConfigError(f'dual_softmax_loss: temperature must be > 0, got {temperature!r}')
-    da = sample_descriptors(desc_a, points_a)
-    db = sample_descriptors(desc_b, points_b)
-    logits = (da @ db.transpose(1, 2)).float() / temperature  # (B, M, M)
-    m = logits.shape[-1]
-    eye = torch.eye(m, dtype=torch.bool, device=logits.device)[None]
-    near = (torch.cdist(points_a, points_a) <= neg_radius) | \
-        (torch.cdist(points_b, points_b) <= neg_radius)
-    keep = (valid[:, None, :] & valid[:, :, None] & ~near) | eye
-    logits = logits.masked_fill(~keep, float('-inf'))
+    sim, far = _pair_similarity('dual_softmax_loss', desc_a, desc_b, points_a, points_b, valid,
+                                neg_radius)
+    if not valid.any():
+        return sim.sum() * 0.0
+    eye = torch.eye(sim.shape[-1], dtype=torch.bool, device=sim.device)[None]
+    keep = (far & valid[:, None, :] & valid[:, :, None]) | eye
+    logits = (sim.float() / temperature).masked_fill(~keep, float('-inf'))  # (B, M, M)
     nll_ab = -F.log_softmax(logits, dim=2).diagonal(dim1=1, dim2=2)  # (B, M)
     nll_ba = -F.log_softmax(logits, dim=1).diagonal(dim1=1, dim2=2)
-    if not valid.any():
-        return logits.new_zeros(()) + desc_a.sum() * 0.0
     return 0.5 * (nll_ab[valid].mean() + nll_ba[valid].mean())
 
 
