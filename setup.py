@@ -23,6 +23,7 @@ CONSOLE_SCRIPTS = [
     'semfeat-play = semfeat_ros.tools.play:cli',
     'semfeat-record = semfeat_ros.tools.record:cli',
     'semfeat-train = semfeat_ros.tools.train:cli',
+    'semfeat-train-glue = semfeat_ros.tools.train_glue:cli',
     'semfeat-calibrate-seg = semfeat_ros.tools.calibrate_seg:cli',
     'semfeat-features = semfeat_ros.tools.features:cli',
     'semfeat-map = semfeat_ros.tools.map:cli',
@@ -38,7 +39,7 @@ setup(
     version='0.1.0',
     packages=find_packages(exclude=['test', 'test.*']),
     package_data={PACKAGE: ['weights/*.safetensors', 'weights/*.json', 'weights/*.md',
-                           'weights/*.png']},
+                           'weights/*.png', 'weights/*.LICENSE']},
     data_files=[
         ('share/ament_index/resource_index/packages', [f'resource/{PACKAGE}']),
         (f'share/{PACKAGE}', ['package.xml']),

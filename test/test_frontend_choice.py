@@ -15,9 +15,11 @@ from semfeat_ros.camera import load_camera_yaml
 from semfeat_ros.frontend import FrontendConfig
 from semfeat_ros.labels import load_labels
 from semfeat_ros.matching.errors import FeatureInputError, MatchingConfigError
+from semfeat_ros.matching.learned import LearnedMatcher
 from semfeat_ros.matching.nn import bytes_from_floats
 from semfeat_ros.matching.sequential import FrameFeatures, SequentialMatcher
 from semfeat_ros.model.errors import WeightsNotFoundError
+from semfeat_ros.model.glue import SHIPPED_GLUE
 from semfeat_ros.offline.errors import OfflineConfigError
 from semfeat_ros.offline.frontends import (
     FRONTEND_KINDS,
@@ -146,13 +148,30 @@ def test_learned_matching_on_two_frames(camera) -> None:
         nosize.process(FrameFeatures(**{**b.__dict__, 'image_width': 0, 'image_height': 0}))
 
 
-@pytest.mark.parametrize('features', ['semfeat', 'sift', 'orb', ''])
+@pytest.mark.parametrize('features', ['sift', 'orb', ''])
 def test_learned_is_refused_for_other_descriptors(features: str) -> None:
-    with pytest.raises(MatchingConfigError, match='XFeat') as err:
+    with pytest.raises(MatchingConfigError, match='semfeat, xfeat') as err:
         SequentialMatcher({'matching': {'method': 'learned', 'features': features}})
-    assert 'semfeat_lg' in str(err.value)  # names the evaluation that measures the pair
+    assert "method 'mnn'" in str(err.value)  # names the way out
     with pytest.raises(MatchingConfigError, match='matching.method'):
         SequentialMatcher({'matching': {'method': 'lightglue'}})
+
+
+@pytest.mark.skipif(not SHIPPED_GLUE.is_file(), reason='no shipped SemfeatGlue weights')
+def test_learned_matching_of_the_network_features(camera) -> None:
+    fe = make_frontend('semfeat', FrontendConfig(num_threads=1), 500, network_labels=True)
+    a = matcher_frame(1_000_000_000, fe.process(textured(3), camera), camera, 'cam')
+    b = matcher_frame(1_100_000_000, fe.process(textured(3, 6), camera), camera, 'cam')
+    conf = {'matching': {'method': 'learned', 'features': 'semfeat'},
+            'verification': {'min_inliers': 8}}
+    assert LearnedMatcher('semfeat').describe() == 'SemfeatGlue on semfeat descriptors'
+    learned = SequentialMatcher(conf)
+    learned.process(a)
+    r = learned.process(b)
+    assert r.n_matches > 30 and r.verified
+    d = b.keypoints[r.inlier_matches[:, 1]] - a.keypoints[r.inlier_matches[:, 0]]
+    assert np.median(d[:, 0]) == pytest.approx(-6, abs=1.0)  # the image moved left
+    assert ((r.scores >= 0.1) & (r.scores <= 1.0)).all()  # the matcher's confidences
 
 
 def test_node_parameters() -> None:
@@ -175,11 +194,12 @@ def test_node_parameters() -> None:
     orb = matcher_conf(MatcherNodeConfig(frontend='orb'))
     assert orb['matching']['descriptor_type'] == 'binary'
     SequentialMatcher(orb)
-    for kind in ('semfeat', 'sift', 'orb'):
-        with pytest.raises(MatchingConfigError, match='trained on XFeat'):
+    for kind in ('sift', 'orb'):
+        with pytest.raises(MatchingConfigError, match='a shipped matcher was trained on'):
             SequentialMatcher(matcher_conf(MatcherNodeConfig(frontend=kind, matcher='learned')))
-    lg = matcher_conf(MatcherNodeConfig(frontend='xfeat', matcher='learned'))
-    assert lg['matching']['method'] == 'learned' and lg['matching']['features'] == 'xfeat'
+    for kind in ('semfeat', 'xfeat'):
+        lg = matcher_conf(MatcherNodeConfig(frontend=kind, matcher='learned'))
+        assert lg['matching']['method'] == 'learned' and lg['matching']['features'] == kind
     # the offline tools override frontend and matcher
     over = matcher_conf(MatcherNodeConfig(), 'xfeat', 'learned')
     assert over['matching']['method'] == 'learned' and over['matching']['features'] == 'xfeat'

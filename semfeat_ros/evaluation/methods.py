@@ -532,13 +532,58 @@ for _kind, (_nn_label, _lg_label) in PEER_LABELS.items():
     register_method(f'{_kind}_lg', _lg_label)(_peer_factory(_kind, lightglue=True))
 
 
-SEMFEAT_LG_LABEL = 'Ours (semfeat + LighterGlue)'
+SEMFEAT_LG_LABEL = 'Ours (semfeat + SemfeatGlue)'
+
+
+class GlueMatcher:
+    """SemfeatGlue (``semfeat_ros.model.glue``) behind :class:`LightGlueMethod`'s matcher
+    interface."""
+
+    def __init__(self, glue: object) -> None:
+        self.glue = glue
+
+    def match(self, f0: object, f1: object, size0: tuple[int, int], size1: tuple[int, int]
+              ) -> tuple[np.ndarray, np.ndarray]:
+        return self.glue.match(f0.keypoints, f0.descriptors, f1.keypoints, f1.descriptors,
+                               size0, size1)
+
+
+_GLUE_CACHE: dict[tuple[str, str], GlueMatcher] = {}
+
+
+def semfeat_glue(conf: MethodConf) -> GlueMatcher:
+    """The learned matcher of the network's features: SemfeatGlue with ``conf.extra
+    ['glue_weights']`` (None: the shipped weights), refused unless it was trained on the
+    features of ``conf.weights`` (the SHA-256 its JSON records)."""
+    try:
+        from semfeat_ros.model.errors import WeightsFormatError, WeightsNotFoundError
+        from semfeat_ros.model.glue import file_sha256, load_glue
+        from semfeat_ros.model.weights_io import resolve_weights_path
+    except ImportError as exc:
+        raise MethodUnavailableError(f'semfeat_ros.model.glue is not available ({exc})') from exc
+    glue_path = conf.extra.get('glue_weights')
+    try:
+        net_sha = file_sha256(resolve_weights_path(conf.weights))
+        key = (str(glue_path), net_sha)
+        if key not in _GLUE_CACHE:
+            model, meta = load_glue(glue_path, {'num_threads': _peer_threads(conf)})
+            if meta['semfeat_weights_sha256'] != net_sha:
+                raise MethodUnavailableError(
+                    f'SemfeatGlue weights {glue_path or "(shipped)"} were trained on the '
+                    f'features of other network weights than {conf.weights or "the shipped"} '
+                    f'(SHA-256 {meta["semfeat_weights_sha256"][:12]}, not {net_sha[:12]}): '
+                    f'pass the matching --glue-weights or retrain with semfeat-train-glue')
+            _GLUE_CACHE[key] = GlueMatcher(model)
+    except (WeightsFormatError, WeightsNotFoundError) as exc:
+        raise MethodUnavailableError(str(exc)) from exc
+    return _GLUE_CACHE[key]
 
 
 @register_method('semfeat_lg', SEMFEAT_LG_LABEL)
 def _semfeat_lg(conf: MethodConf) -> Method:
     """The network's keypoints and descriptors (``semfeat_nn``'s extraction, shared) matched by
-    XFeat's LighterGlue; the matcher is checked first, so a missing wheel skips the method
-    without loading the network."""
-    matcher = peer_matcher('xfeat', conf)
-    return LightGlueMethod('semfeat_lg', SEMFEAT_LG_LABEL, semfeat_extractor(conf), matcher)
+    SemfeatGlue, LighterGlue's attention matcher fine-tuned on them; the matcher is checked
+    first, so missing or mismatched matcher weights skip the method without running the
+    network."""
+    return LightGlueMethod('semfeat_lg', SEMFEAT_LG_LABEL, semfeat_extractor(conf),
+                           semfeat_glue(conf))

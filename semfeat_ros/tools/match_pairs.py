@@ -5,11 +5,9 @@ usage: python -m semfeat_ros.tools.match_pairs BAG [--frames N] [--start S] [--o
 For the semfeat and xfeat front ends (:func:`~semfeat_ros.offline.frontends.make_frontend`,
 xfeat labelled by the network), every frame goes through one
 :class:`~semfeat_ros.matching.sequential.SequentialMatcher` per matching method, interleaved
-frame by frame so that both see the same machine load: ``mnn`` and ``learned`` (LighterGlue).
-``semfeat + learned`` runs LighterGlue on SemFeatNet's descriptors on purpose: the matcher's
-configuration refuses that pair (LighterGlue is trained on XFeat's descriptors) and this row
-measures what it would give. Printed per pair and method: median candidate matches, median
-matches verified by the bearing RANSAC, the inlier ratio (verified / candidates over all
+frame by frame so that both see the same machine load: ``mnn`` and ``learned`` (SemfeatGlue
+for semfeat, LighterGlue for xfeat). Printed per pair and method: median candidate matches,
+median matches verified by the bearing RANSAC, the inlier ratio (verified / candidates over all
 frames), the share of frames verified, median tracks, the median matcher time per frame
 (``TrackResult.time_ms``: matching, verification and tracking) with its ratio to mnn, and the
 ratio of the whole frame's time (the front end's median, incl. xfeat's network pass for the
@@ -62,9 +60,7 @@ def run(bag: Path, frames: int = 40, start_s: float = 0.0) -> dict[str, Any]:
     result: dict[str, Any] = {'bag': str(bag), 'frames': len(images), 'start_s': start_s}
     for kind in FRONTENDS:
         fe = make_frontend(kind, conf, conf.max_keypoints, network_labels=True)
-        # 'features' names the descriptors LighterGlue expects; for semfeat it is the
-        # deliberate mismatch this tool measures (see the module doc)
-        matchers = {m: SequentialMatcher({'matching': {'method': m, 'features': 'xfeat'}})
+        matchers = {m: SequentialMatcher({'matching': {'method': m, 'features': kind}})
                     for m in METHODS}
         rows: dict[str, list[tuple[int, int, bool, int, float]]] = {m: [] for m in METHODS}
         fe_ms = []
