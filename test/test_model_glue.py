@@ -23,8 +23,8 @@ from semfeat_ros.model.glue import (
 )
 from semfeat_ros.model.losses import assignment_nll
 from semfeat_ros.model.train_glue import (
-    keypoint_subset,
     ground_truth_assignment,
+    keypoint_subset,
     load_glue_conf,
     load_pairs,
     match_quality,

@@ -25,7 +25,6 @@ cores (config/glue.yaml has its measured time); nothing is downloaded.
 """
 from __future__ import annotations
 
-import csv
 import json
 import math
 from pathlib import Path
@@ -53,6 +52,7 @@ from semfeat_ros.model.glue import (
     save_glue,
 )
 from semfeat_ros.model.losses import assignment_nll
+from semfeat_ros.model.training import append_csv, expand_shards, read_csv_log
 from semfeat_ros.model.weights_io import resolve_weights_path
 
 default_glue_conf: dict[str, Any] = {
@@ -295,15 +295,6 @@ def validate(model: SemfeatGlue, pairs: list[dict[str, np.ndarray]], threshold: 
 # ---------------------------------------------------------------------------- training
 
 
-def _append_csv(path: Path, row: dict[str, Any]) -> None:
-    new = not path.is_file()
-    with open(path, 'a', newline='') as f:
-        w = csv.DictWriter(f, fieldnames=list(row))
-        if new:
-            w.writeheader()
-        w.writerow(row)
-
-
 def plot_glue_logs(out: Path) -> Path | None:
     """``plots/glue.png``: training loss and the validation's precision / recall (matcher and
     mutual NN) by step."""
@@ -311,14 +302,7 @@ def plot_glue_logs(out: Path) -> Path | None:
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
 
-    def read(path: Path) -> dict[str, np.ndarray]:
-        if not path.is_file():
-            return {}
-        with open(path, newline='') as f:
-            rows = list(csv.DictReader(f))
-        return {k: np.array([float(r[k]) for r in rows]) for k in rows[0]} if rows else {}
-
-    tr, va = read(out / 'train_log.csv'), read(out / 'val_log.csv')
+    tr, va = read_csv_log(out / 'train_log.csv'), read_csv_log(out / 'val_log.csv')
     if not va:
         return None
     (out / 'plots').mkdir(exist_ok=True)
@@ -379,7 +363,6 @@ class _Extractor:
 def main(conf: dict[str, Any], out: Path, *, export: Path | None = None,
          progress: bool = True, config_name: str | None = None) -> dict[str, Any]:
     """Fine-tune SemfeatGlue (see the module docstring); returns the run's summary."""
-    from semfeat_ros.model.training import expand_shards
 
     c = load_glue_conf(conf)
     out = Path(out)
@@ -413,7 +396,7 @@ def main(conf: dict[str, Any], out: Path, *, export: Path | None = None,
     for name in ('train_log.csv', 'val_log.csv'):
         (out / name).unlink(missing_ok=True)
     first = {'step': 0, **validate(model, val, float(c['filter_threshold']))}
-    _append_csv(out / 'val_log.csv', first)
+    append_csv(out / 'val_log.csv', first)
     rng = np.random.default_rng([int(c['seed']), 7])
     t1 = time.monotonic()
     bar = tqdm(range(1, steps + 1), desc='semfeat-train-glue', disable=not progress)
@@ -435,12 +418,12 @@ def main(conf: dict[str, Any], out: Path, *, export: Path | None = None,
             total += float(loss.detach())
         torch.nn.utils.clip_grad_norm_(model.parameters(), float(c['grad_clip']))
         opt.step()
-        _append_csv(out / 'train_log.csv', {'step': step, 'loss': total,
+        append_csv(out / 'train_log.csv', {'step': step, 'loss': total,
                                             'lr': opt.param_groups[0]['lr']})
         bar.set_postfix(loss=f'{total:.3f}')
         if step % int(c['val_every']) == 0 or step == steps:
             last = {'step': step, **validate(model, val, float(c['filter_threshold']))}
-            _append_csv(out / 'val_log.csv', last)
+            append_csv(out / 'val_log.csv', last)
     train_s = time.monotonic() - t1
     plot = plot_glue_logs(out)
     meta = {

@@ -395,7 +395,8 @@ class Validator:
         return out
 
 
-def _append_csv(path: Path, row: dict[str, Any]) -> None:
+def append_csv(path: Path, row: dict[str, Any]) -> None:
+    """Append ``row`` to the CSV log at ``path`` (the header first when it is new)."""
     new = not path.is_file()
     with open(path, 'a', newline='') as f:
         w = csv.DictWriter(f, fieldnames=list(row))
@@ -418,24 +419,27 @@ def _truncate_csv(path: Path, max_step: int) -> None:
         w.writerows(r for r in rows if int(r['step']) <= max_step)
 
 
+def read_csv_log(path: Path) -> dict[str, np.ndarray]:
+    """The numeric columns of a CSV log (empty and 'nan' cells NaN, the text column ``phase``
+    left out); {} when the file is missing or empty."""
+    if not path.is_file():
+        return {}
+    with open(path, newline='') as f:
+        rows = list(csv.DictReader(f))
+    if not rows:
+        return {}
+    return {k: np.array([float(r[k]) if r[k] not in ('', 'nan') else np.nan for r in rows])
+            for k in rows[0] if k != 'phase'}
+
+
 def plot_logs(out: Path) -> None:
     """``plots/losses.png`` and ``plots/metrics.png`` from the CSV logs."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
 
-    def read(path: Path) -> dict[str, np.ndarray]:
-        if not path.is_file():
-            return {}
-        with open(path, newline='') as f:
-            rows = list(csv.DictReader(f))
-        if not rows:
-            return {}
-        return {k: np.array([float(r[k]) if r[k] not in ('', 'nan') else np.nan for r in rows])
-                for k in rows[0] if k != 'phase'}
-
     (out / 'plots').mkdir(exist_ok=True)
-    tr, va = read(out / 'train_log.csv'), read(out / 'val_log.csv')
+    tr, va = read_csv_log(out / 'train_log.csv'), read_csv_log(out / 'val_log.csv')
     if tr:
         fig, ax = plt.subplots(1, 4, figsize=(16, 3.5))
         for a, key in zip(ax, ('loss', 'kp', 'desc', 'seg')):
@@ -599,14 +603,14 @@ def main(conf: dict[str, Any], out: Path, *, resume: bool = False, export: Path 
         for k, name in enumerate(PAIR_KINDS):
             row[f'n_{name}'] = int((np_batch['kind'] == k).sum())
         t_last = now
-        _append_csv(out / 'train_log.csv', row)
+        append_csv(out / 'train_log.csv', row)
         bar.update(1)
         bar.set_postfix(loss=f'{logs["loss"]:.3f}', kp=f'{logs["kp"]:.3f}',
                         desc=f'{logs["desc"]:.3f}', seg=f'{logs["seg"]:.3f}',
                         **({'mIoU': f'{val_metrics["val_miou"]:.2f}'} if val_metrics else {}))
         if step % c['val_every'] == 0 or step == c['steps']:
             val_metrics = validator.run(model, crit)
-            _append_csv(out / 'val_log.csv', {'step': step, **val_metrics})
+            append_csv(out / 'val_log.csv', {'step': step, **val_metrics})
             _save_checkpoint(ckpt, model, opt, step, c)
             plot_logs(out)
         if stop_after is not None and step >= stop_after and step < c['steps']:
