@@ -322,7 +322,7 @@ def test_shipped_config_files_match_the_code() -> None:
     for stage in (stage7, stage8):  # stage 6's recipe, continued from the previous weights
         assert {k: v for k, v in stage6.items() if k not in ('init_weights', 'steps')} == \
             {k: v for k, v in stage.items() if k not in ('init_weights', 'steps')}
-    stage9 = load_train_conf(read_config(REPO / 'config' / 'distill_stage9.yaml'))  # shipped
+    stage9 = load_train_conf(read_config(REPO / 'config' / 'distill_stage9.yaml'))
     assert stage9['init_weights'] == stage8['init_weights'].replace('train_v12', 'train_v13')
     assert stage9['loss']['desc_dsm_weight'] > 0 == stage8['loss']['desc_dsm_weight']
     dsm = ('desc_dsm_weight', 'desc_dsm_temperature')
@@ -330,8 +330,15 @@ def test_shipped_config_files_match_the_code() -> None:
         {k: v for k, v in stage9['loss'].items() if k not in dsm}  # stage 8's + the dual softmax
     assert {k: v for k, v in stage8.items() if k not in ('init_weights', 'steps', 'loss')} == \
         {k: v for k, v in stage9.items() if k not in ('init_weights', 'steps', 'loss')}
-    assert meta['training']['init_weights'] == stage9['init_weights']
-    assert meta['training']['train_only'] == stage9['train_only']
+    stage10 = load_train_conf(read_config(REPO / 'config' / 'distill_stage10.yaml'))  # shipped
+    assert stage10['init_weights'] == stage9['init_weights'].replace('train_v13', 'train_v14')
+    assert stage10['loss']['desc_dsm_weight'] > stage9['loss']['desc_dsm_weight']
+    assert {k: v for k, v in stage9['loss'].items() if k != 'desc_dsm_weight'} == \
+        {k: v for k, v in stage10['loss'].items() if k != 'desc_dsm_weight'}
+    assert {k: v for k, v in stage9.items() if k not in ('init_weights', 'steps', 'loss')} == \
+        {k: v for k, v in stage10.items() if k not in ('init_weights', 'steps', 'loss')}
+    assert meta['training']['init_weights'] == stage10['init_weights']
+    assert meta['training']['train_only'] == stage10['train_only']
     assert meta['training']['teacher'] == 'xfeat'
     assert stage5['train_only'] == [] and stage5['warmup_fraction'] == 0.0  # the whole network
     assert stage5['init_weights'] == stage4['init_weights'].replace('train_v8', 'train_v9')
