@@ -109,15 +109,15 @@ def test_training_forward_is_kornias_forward_and_matches_lighterglue() -> None:
     # with LighterGlue's weights and pruning, match() gives LighterGlue's own matches
     pruned = SemfeatGlue()
     init_from_lighterglue(pruned)
-    idx, scores = pruned.eval().match(kp0, d0, kp1, d1, size, size)
     f0 = PeerFeatures(kp0.astype(np.float64), np.ones(n0, np.float32), d0)
     f1 = PeerFeatures(kp1.astype(np.float64), np.ones(n1, np.float32), d1)
+    idx, scores = pruned.eval().match(f0, f1, size, size)
     ref_idx, ref_scores = load_matcher('xfeat', {'num_threads': 1}).match(f0, f1, size, size)
     assert len(idx) > 50 and np.array_equal(idx, ref_idx)
     assert np.allclose(scores, ref_scores, atol=1e-5)
     with pytest.raises(ModelInputError, match='not'):
-        pruned.match(kp0, d0[:, :32], kp1, d1, size, size)
-    empty = pruned.match(kp0[:0], d0[:0], kp1, d1, size, size)
+        pruned.match(PeerFeatures(f0.keypoints, f0.scores, d0[:, :32]), f1, size, size)
+    empty = pruned.match(PeerFeatures(f0.keypoints[:0], f0.scores[:0], d0[:0]), f1, size, size)
     assert empty[0].shape == (0, 2) and empty[1].shape == (0,)
 
 

@@ -535,26 +535,14 @@ for _kind, (_nn_label, _lg_label) in PEER_LABELS.items():
 SEMFEAT_LG_LABEL = 'Ours (semfeat + SemfeatGlue)'
 
 
-class GlueMatcher:
-    """SemfeatGlue (``semfeat_ros.model.glue``) behind :class:`LightGlueMethod`'s matcher
-    interface."""
-
-    def __init__(self, glue: object) -> None:
-        self.glue = glue
-
-    def match(self, f0: object, f1: object, size0: tuple[int, int], size1: tuple[int, int]
-              ) -> tuple[np.ndarray, np.ndarray]:
-        return self.glue.match(f0.keypoints, f0.descriptors, f1.keypoints, f1.descriptors,
-                               size0, size1)
+_GLUE_CACHE: dict[tuple[str, str], object] = {}
 
 
-_GLUE_CACHE: dict[tuple[str, str], GlueMatcher] = {}
-
-
-def semfeat_glue(conf: MethodConf) -> GlueMatcher:
+def semfeat_glue(conf: MethodConf) -> object:
     """The learned matcher of the network's features: SemfeatGlue with ``conf.extra
     ['glue_weights']`` (None: the shipped weights), refused unless it was trained on the
-    features of ``conf.weights`` (the SHA-256 its JSON records)."""
+    features of ``conf.weights`` (the SHA-256 its JSON records); it has
+    ``semfeat_ros.model.peers.PeerMatcher``'s ``match``."""
     try:
         from semfeat_ros.model.errors import WeightsFormatError, WeightsNotFoundError
         from semfeat_ros.model.glue import file_sha256, load_glue
@@ -573,7 +561,7 @@ def semfeat_glue(conf: MethodConf) -> GlueMatcher:
                     f'features of other network weights than {conf.weights or "the shipped"} '
                     f'(SHA-256 {meta["semfeat_weights_sha256"][:12]}, not {net_sha[:12]}): '
                     f'pass the matching --glue-weights or retrain with semfeat-train-glue')
-            _GLUE_CACHE[key] = GlueMatcher(model)
+            _GLUE_CACHE[key] = model
     except (WeightsFormatError, WeightsNotFoundError) as exc:
         raise MethodUnavailableError(str(exc)) from exc
     return _GLUE_CACHE[key]

@@ -27,23 +27,19 @@ class LearnedMatcher:
 
     def __init__(self, features: str, min_score: float = 0.1, num_threads: int = 1) -> None:
         self.features = features
+        conf = {'filter_threshold': float(min_score), 'num_threads': int(num_threads)}
         if features == 'semfeat':
             from semfeat_ros.model.glue import load_glue
 
-            self.glue, _ = load_glue(None, {'filter_threshold': float(min_score),
-                                            'num_threads': int(num_threads)})
-            self.net = None
-            return
-        from semfeat_ros.model.peers import load_matcher
+            self.net, _ = load_glue(None, conf)
+        else:
+            from semfeat_ros.model.peers import load_matcher
 
-        self.glue = None
-        self.net = load_matcher(features, {'filter_threshold': float(min_score),
-                                           'num_threads': int(num_threads)})
+            self.net = load_matcher(features, conf)
 
     def describe(self) -> str:
-        if self.glue is not None:
-            return 'SemfeatGlue on semfeat descriptors'
-        return f'LighterGlue on {self.features} descriptors'
+        name = 'SemfeatGlue' if self.features == 'semfeat' else 'LighterGlue'
+        return f'{name} on {self.features} descriptors'
 
     def match(self, kp0: np.ndarray, desc0: np.ndarray, kp1: np.ndarray, desc1: np.ndarray,
               image_size: tuple[int, int], *, labels0: np.ndarray | None = None,
@@ -65,11 +61,7 @@ class LearnedMatcher:
                           np.asarray(desc0, np.float32))
         f1 = PeerFeatures(np.asarray(kp1, np.float64), np.ones(n1, np.float32),
                           np.asarray(desc1, np.float32))
-        if self.glue is not None:
-            idx, scores = self.glue.match(f0.keypoints, f0.descriptors, f1.keypoints,
-                                          f1.descriptors, image_size, image_size)
-        else:
-            idx, scores = self.net.match(f0, f1, image_size, image_size)
+        idx, scores = self.net.match(f0, f1, image_size, image_size)
         keep = np.ones(len(idx), dtype=bool)
         if compatibility is not None and labels0 is not None and labels1 is not None:
             last = compatibility.shape[0] - 1

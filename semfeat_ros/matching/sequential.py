@@ -9,16 +9,14 @@ For every frame :meth:`SequentialMatcher.process`:
 2. matches the current features against the previous frame: mutual nearest neighbour and ratio
    test (``matching.method`` 'mnn'), or an attention matcher ('learned': SemfeatGlue on the
    network's descriptors, LighterGlue on XFeat's, see :class:`LearnedMatcher`); then semantic
-   compatibility (keypoints on dynamic classes are
-   never tracked) and the displacement gate,
+   compatibility (keypoints on dynamic classes are never tracked) and the displacement gate,
 3. verifies the matches geometrically on unit bearings (essential matrix RANSAC, or the
    rotation-only model when the vehicle stands still or only turns),
 4. extends tracks along the inliers and starts new ones,
 5. optionally re-acquires tracks lost 1..``reacquire_window`` frames before the previous one by
    matching their last descriptors to the still untracked current features (mutual nearest
    neighbour with either method: an attention matcher costs ~100 ms a pair on 2 cores),
-   verified against
-   the tracks that continue between that frame and the current one,
+   verified against the tracks that continue between that frame and the current one,
 6. ends tracks unmatched for more than ``tracking.max_missed`` frames.
 
 The result lists every tracked keypoint of the current frame (the ``/semfeat/tracks`` contract:

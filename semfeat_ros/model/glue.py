@@ -135,26 +135,30 @@ class SemfeatGlue(nn.Module):
         return out
 
     @torch.inference_mode()
-    def match(self, kp0: np.ndarray, desc0: np.ndarray, kp1: np.ndarray, desc1: np.ndarray,
-              size0: tuple[int, int], size1: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-        """Matches between two images: keypoints (N, 2) px, unit descriptors (N, 64) and sizes
-        (width, height) px; returns (M, 2) int64 index pairs sorted by the first index and
-        their (M,) float32 confidences (at least ``filter_threshold``)."""
-        empty = (np.zeros((0, 2), np.int64), np.zeros(0, np.float32))
-        for d in (desc0, desc1):
-            if np.ndim(d) != 2 or np.shape(d)[1] != GLUE_ARCH['input_dim']:
-                raise ModelInputError(f'SemfeatGlue: descriptors of shape {np.shape(d)} are '
-                                      f'not (N, {GLUE_ARCH["input_dim"]})')
-        if len(kp0) == 0 or len(kp1) == 0:
-            return empty
-        def t(a: np.ndarray) -> torch.Tensor:
-            return torch.from_numpy(np.ascontiguousarray(a, np.float32))[None]
+    def match(self, f0: Any, f1: Any, size0: tuple[int, int], size1: tuple[int, int]
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """Matches between two images' features (``keypoints`` (N, 2) px and unit
+        ``descriptors`` (N, 64), e.g. :class:`~semfeat_ros.model.peers.PeerFeatures`; the
+        interface of :class:`~semfeat_ros.model.peers.PeerMatcher`) of sizes (width, height)
+        px; returns (M, 2) int64 index pairs sorted by the first index and their (M,) float32
+        confidences (at least ``filter_threshold``)."""
+        for f in (f0, f1):
+            if np.ndim(f.descriptors) != 2 or np.shape(f.descriptors)[1] != \
+                    GLUE_ARCH['input_dim']:
+                raise ModelInputError(f'SemfeatGlue: descriptors of shape '
+                                      f'{np.shape(f.descriptors)} are not '
+                                      f'(N, {GLUE_ARCH["input_dim"]})')
+        if len(f0.keypoints) == 0 or len(f1.keypoints) == 0:
+            return np.zeros((0, 2), np.int64), np.zeros(0, np.float32)
 
-        out = self.net({
-            'image0': {'keypoints': t(kp0), 'descriptors': t(desc0),
-                       'image_size': torch.tensor([size0], dtype=torch.float32)},
-            'image1': {'keypoints': t(kp1), 'descriptors': t(desc1),
-                       'image_size': torch.tensor([size1], dtype=torch.float32)}})
+        def image(f: Any, size: tuple[int, int]) -> dict[str, torch.Tensor]:
+            return {'keypoints': torch.from_numpy(np.ascontiguousarray(f.keypoints,
+                                                                       np.float32))[None],
+                    'descriptors': torch.from_numpy(np.ascontiguousarray(f.descriptors,
+                                                                         np.float32))[None],
+                    'image_size': torch.tensor([size], dtype=torch.float32)}
+
+        out = self.net({'image0': image(f0, size0), 'image1': image(f1, size1)})
         matches = out['matches'][0].numpy().astype(np.int64).reshape(-1, 2)
         scores = out['scores'][0].numpy().astype(np.float32).reshape(-1)
         order = np.lexsort((matches[:, 1], matches[:, 0]))

@@ -52,6 +52,7 @@ from semfeat_ros.model.glue import (
     save_glue,
 )
 from semfeat_ros.model.losses import assignment_nll
+from semfeat_ros.model.metrics import mutual_nn
 from semfeat_ros.model.training import append_csv, expand_shards, read_csv_log
 from semfeat_ros.model.weights_io import resolve_weights_path
 
@@ -253,16 +254,6 @@ def _tensors(p: dict[str, np.ndarray]) -> tuple[torch.Tensor, ...]:
 # ---------------------------------------------------------------------------- validation
 
 
-def _mutual_argmax(scores: np.ndarray, threshold: float | None) -> np.ndarray:
-    """(M,) index of each row's mutual best column, -1 where none (or below ``threshold``)."""
-    j = scores.argmax(axis=1)
-    i = scores.argmax(axis=0)
-    ok = i[j] == np.arange(len(j))
-    if threshold is not None:
-        ok &= scores[np.arange(len(j)), j] > threshold
-    return np.where(ok, j, -1)
-
-
 def match_quality(pred0: np.ndarray, m0: np.ndarray) -> tuple[int, int, int]:
     """(correct, predicted, ground-truth) match counts of one pair; predictions from keypoints
     whose ground truth is ignored are not counted."""
@@ -274,8 +265,11 @@ def match_quality(pred0: np.ndarray, m0: np.ndarray) -> tuple[int, int, int]:
 @torch.inference_mode()
 def validate(model: SemfeatGlue, pairs: list[dict[str, np.ndarray]], threshold: float
              ) -> dict[str, float]:
-    """Loss, precision and recall of the matcher (last layer's assignment, mutual, above
-    ``threshold``) and of mutual NN on the raw descriptors, over ``pairs``."""
+    """Loss, precision and recall of the matcher (its last layer's matches, kornia's
+    ``filter_matches`` at ``threshold`` as at inference) and of mutual NN on the raw
+    descriptors, over ``pairs``."""
+    from kornia.feature.lightglue import filter_matches
+
     model.eval()
     losses, glue, nn = [], np.zeros(3), np.zeros(3)
     for p in pairs:
@@ -283,9 +277,11 @@ def validate(model: SemfeatGlue, pairs: list[dict[str, np.ndarray]], threshold: 
         la = model(*t)
         m0, m1 = torch.from_numpy(p['m0'])[None], torch.from_numpy(p['m1'])[None]
         losses.append(float(sum(assignment_nll(x, m0, m1) for x in la) / len(la)))
-        prob = la[-1][0, :-1, :-1].exp().numpy()
-        glue += match_quality(_mutual_argmax(prob, threshold), p['m0'])
-        nn += match_quality(_mutual_argmax(p['desc0'] @ p['desc1'].T, None), p['m0'])
+        glue += match_quality(filter_matches(la[-1], threshold)[0][0].numpy(), p['m0'])
+        nn_pairs = mutual_nn(p['desc0'], p['desc1'])
+        nn_pred0 = np.full(len(p['m0']), -1, np.int64)
+        nn_pred0[nn_pairs[:, 0]] = nn_pairs[:, 1]
+        nn += match_quality(nn_pred0, p['m0'])
     model.train()
     return {'loss': float(np.mean(losses)),
             'precision': glue[0] / max(glue[1], 1), 'recall': glue[0] / max(glue[2], 1),
