@@ -265,6 +265,30 @@ def test_samples_are_deterministic_and_well_formed(shard: Path) -> None:
     assert batch['image'].shape == (4, 96, 96, 3) and batch['points_a'].shape == (2, 64, 2)
 
 
+def test_dense_flow_is_each_pixel_s_correspondence(shard: Path) -> None:
+    gen = PairGenerator([shard], {**SMALL_DATA, 'dense_flow': True}, seed=5, use_photos=True)
+    kinds = set()
+    for key in range(6):
+        rng = np.random.default_rng([5, key])
+        pair = gen.make_pair(rng)
+        s = gen.build(pair, rng)
+        kinds.add(pair.kind)
+        assert s['flow_a'].shape == (96, 96, 2) and s['flow_a'].dtype == np.float32
+        assert s['flowv_a'].shape == (96, 96) and s['flowv_a'].dtype == bool
+        assert s['flowv_a'].any()
+        vv, uu = np.nonzero(s['flowv_a'])
+        pick = np.linspace(0, len(uu) - 1, 20).astype(int)
+        pts = np.stack([uu[pick], vv[pick]], axis=1).astype(np.float64)
+        mapped, ok = pair.correspond(pts)
+        assert ok.all()
+        np.testing.assert_allclose(s['flow_a'][vv[pick], uu[pick]], mapped, atol=1e-3)
+    assert len(kinds) > 1
+    batch = collate([gen.sample(0), gen.sample(1)])
+    assert batch['flow'].shape == (2, 96, 96, 2) and batch['flow_valid'].shape == (2, 96, 96)
+    assert 'flow' not in collate([PairGenerator([shard], SMALL_DATA, seed=5,
+                                                use_photos=False).sample(0)])
+
+
 def test_photo_pairs_have_no_labels_and_full_correspondence(shard: Path) -> None:
     gen = PairGenerator([], {**SMALL_DATA, 'pair_mix': {'photo': 1.0}}, seed=0)
     s = gen.sample(0)

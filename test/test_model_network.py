@@ -17,6 +17,7 @@ from semfeat_ros.model.losses import (
     dual_softmax_loss,
     keypoint_cell_loss,
     keypoint_loss,
+    keypoint_repeat_loss,
     lovasz_softmax_loss,
     sample_descriptors,
     segmentation_loss,
@@ -439,6 +440,51 @@ def test_dual_softmax_loss_hand_computed() -> None:
         dual_softmax_loss(da, db, pts, pts, valid, temperature=0.0)
     with pytest.raises(ModelConfigError, match='desc_dsm_temperature'):
         MultiTaskLoss({'desc_dsm_temperature': 0.0})
+
+
+def _identity_flow(b: int, h: int, w: int) -> torch.Tensor:
+    gu, gv = torch.meshgrid(torch.arange(w, dtype=torch.float32),
+                            torch.arange(h, dtype=torch.float32), indexing='xy')
+    return torch.stack([gu, gv], dim=-1)[None].repeat(b, 1, 1, 1)
+
+
+def test_keypoint_repeat_loss_rewards_heatmaps_that_follow_the_flow() -> None:
+    torch.manual_seed(0)
+    b, h, w = 2, 32, 48
+    heat_a = torch.randn(b, 1, h, w) * 3
+    shifted = torch.roll(heat_a, shifts=3, dims=-1)  # view b: view a moved 3 px right
+    logits = torch.cat([heat_a, shifted])
+    flow = _identity_flow(b, h, w)
+    flow[..., 0] += 3
+    valid = torch.ones(b, h, w, dtype=torch.bool)
+    valid[:, :, w - 3:] = False  # their partners fall outside view b
+    follows = keypoint_repeat_loss(logits, flow, valid, patch=8)
+    assert follows.item() == pytest.approx(0.0, abs=1e-5)
+    # the same heatmaps read through the identity flow disagree
+    ignores = keypoint_repeat_loss(logits, _identity_flow(b, h, w), valid, patch=8)
+    assert ignores.item() > 0.2
+    # hand check of one window: cosine of the two 8x8 heat patches
+    one = keypoint_repeat_loss(logits[[0, 2]][:, :, :8, :8], _identity_flow(1, 8, 8),
+                               torch.ones(1, 8, 8, dtype=torch.bool), patch=8)
+    pa, pb = torch.sigmoid(logits[0, 0, :8, :8]), torch.sigmoid(logits[2, 0, :8, :8])
+    cos = (pa * pb).sum() / (pa.norm() * pb.norm())
+    assert one.item() == pytest.approx(1.0 - cos.item(), abs=1e-5)
+    # no window with enough corresponding pixels: 0, and finite gradients where masked
+    x = logits.clone().requires_grad_()
+    none = keypoint_repeat_loss(x, flow, torch.zeros_like(valid), patch=8)
+    assert none.item() == 0.0
+    part = valid.clone()
+    part[:, :, : w // 2] = False
+    keypoint_repeat_loss(x, flow, part, patch=8).backward()
+    assert torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0
+    with pytest.raises(ModelInputError, match='flow'):
+        keypoint_repeat_loss(logits, flow[:, :-1], valid)
+    with pytest.raises(ModelConfigError, match='kp_repeat_patch'):
+        MultiTaskLoss({'kp_repeat_patch': 7})
+    with pytest.raises(ModelInputError, match='dense_flow'):
+        MultiTaskLoss({'kp_repeat_weight': 1.0})(
+            {'keypoint_logits': logits}, {'kp_target': torch.zeros(2 * b, h, w),
+                                          'kp_valid': torch.ones(2 * b, h, w, dtype=torch.bool)})
 
 
 def test_segmentation_loss_ignores_255() -> None:

@@ -65,6 +65,8 @@ default_data_conf: dict[str, Any] = {
     'drive_warp_prob': 0.3,  # drive pairs: probability of a mild extra similarity on view b
     'drive_min_overlap': 0.25,  # drive pairs: minimum shard pair_overlap to use a pair
     'min_valid_fraction': 0.5,  # crops must have at least this fraction of labelled pixels
+    'dense_flow': False,  # also give each view-a pixel's position in view b (flow_a, for
+    #                       loss.kp_repeat_weight)
     'num_points': 256,  # descriptor correspondences per pair (padded with invalid rows)
     'random_point_fraction': 0.25,  # share of those drawn at random valid pixels (not keypoints)
     'kp_max': 2000,  # max keypoint candidates per source frame
@@ -849,7 +851,9 @@ class PairGenerator:
         ``label_a``/``label_b`` (h, w) uint8 (255 ignore), ``cov_a``/``cov_b`` (h, w) bool
         pixels showing the source image (inside the warp and, for rendered frames, the image
         circle), ``points_a``/``points_b`` (M, 2)
-        float32 px, ``corr_valid`` (M,) bool, ``kind`` int (index in :data:`PAIR_KINDS`).
+        float32 px, ``corr_valid`` (M,) bool, ``kind`` int (index in :data:`PAIR_KINDS`); with
+        ``dense_flow``, ``flow_a`` (h, w, 2) float32 px (each view-a pixel in view b) and
+        ``flowv_a`` (h, w) bool (where that correspondence exists).
         """
         c = self.conf
         pair.render()
@@ -890,6 +894,11 @@ class PairGenerator:
         valid[:k] = ok
         out.update(points_a=points_a, points_b=points_b, corr_valid=valid,
                    kind=np.array(PAIR_KINDS.index(pair.kind)))
+        if c['dense_flow']:
+            gu, gv = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+            flow, ok = pair.correspond(np.stack([gu.ravel(), gv.ravel()], axis=1))
+            out['flow_a'] = flow.reshape(h, w, 2).astype(np.float32)
+            out['flowv_a'] = ok.reshape(h, w)
         return out
 
     def sample(self, key: int | Sequence[int], augment: bool = True) -> dict[str, np.ndarray]:
@@ -912,4 +921,7 @@ def collate(samples: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
         'corr_valid': np.stack([s['corr_valid'] for s in samples]),
         'kind': np.stack([s['kind'] for s in samples]),
     }
+    if all('flow_a' in s for s in samples):
+        out['flow'] = np.stack([s['flow_a'] for s in samples])
+        out['flow_valid'] = np.stack([s['flowv_a'] for s in samples])
     return out

@@ -50,6 +50,9 @@ default_loss_conf: dict[str, Any] = {
     'desc_dsm_weight': 0.0,  # weight of L_dsm, the dual-softmax matching NLL of each pair's
     #                          correspondences (see dual_softmax_loss); 0: off (the paper)
     'desc_dsm_temperature': 0.1,  # cosine similarities are divided by this before the softmax
+    'kp_repeat_weight': 0.0,  # weight of L_repeat, the cross-view consistency of the predicted
+    #                           heatmaps (see keypoint_repeat_loss); needs data.dense_flow; 0: off
+    'kp_repeat_patch': 16,  # px, side of the square windows L_repeat compares (stride half that)
     'kp_photo_targets': 1.0,  # 1: the ground-truth keypoint terms also train on photo pairs
     #                           (homographically adapted corners); 0: photos' keypoints are
     #                           learnt from the teacher only
@@ -117,6 +120,51 @@ def keypoint_cell_loss(logits: torch.Tensor, target: torch.Tensor,
     logp = F.log_softmax(cells.float(), dim=1)
     ce = -(tgt * logp).sum(dim=1) / mass.clamp(min=1e-6)
     return ce[has].mean()
+
+
+def keypoint_repeat_loss(logits: torch.Tensor, flow: torch.Tensor, flow_valid: torch.Tensor,
+                         patch: int = 16, min_valid: float = 0.5) -> torch.Tensor:
+    """Cross-view consistency of the predicted heatmaps (R2D2's repeatability loss).
+
+    The targets of the other keypoint terms are fixed candidate points; this term asks the
+    network's own heatmap to fire at the same scene points in both views of a pair, wherever
+    it fires. View b's heatmap is warped into view a through the pair's dense correspondence
+    (bilinear), and each ``patch`` x ``patch`` window (stride ``patch / 2``) of view a's heatmap
+    is compared with the warped one by cosine similarity: the loss is 1 - its mean. Windows with
+    less than ``min_valid`` of their pixels corresponding are skipped.
+
+    Args:
+        logits: (2B, 1, H, W) pre-sigmoid heatmap logits, views a then views b.
+        flow: (B, H, W, 2) float px, each view-a pixel's position in view b.
+        flow_valid: (B, H, W) bool, pixels whose correspondence exists.
+        patch: px, window side (even).
+        min_valid: fraction of a window's pixels that must correspond.
+    Returns:
+        scalar in [0, 1] (0 if no window qualifies).
+    """
+    if logits.ndim != 4 or logits.shape[1] != 1:
+        raise ModelInputError(f'keypoint_repeat_loss: logits {tuple(logits.shape)}, expected '
+                              f'(2B, 1, H, W)')
+    b = logits.shape[0] // 2
+    h, w = logits.shape[-2:]
+    if flow.shape != (b, h, w, 2) or flow_valid.shape != (b, h, w):
+        raise ModelInputError(f'keypoint_repeat_loss: flow {tuple(flow.shape)} / valid '
+                              f'{tuple(flow_valid.shape)} vs logits {tuple(logits.shape)}')
+    heat = torch.sigmoid(logits.float())
+    scale = torch.tensor([2.0 / max(w - 1, 1), 2.0 / max(h - 1, 1)], dtype=heat.dtype)
+    grid = flow.to(heat.dtype) * scale - 1.0  # pixel centres at integers: align_corners=True
+    warped = F.grid_sample(heat[b:], grid, mode='bilinear', padding_mode='zeros',
+                           align_corners=True)
+    valid = flow_valid[:, None].to(heat.dtype)
+    ha, hb = heat[:b] * valid, warped * valid
+    stride = patch // 2
+    dot = F.avg_pool2d(ha * hb, patch, stride)
+    norm2 = F.avg_pool2d(ha * ha, patch, stride) * F.avg_pool2d(hb * hb, patch, stride)
+    cos = dot / torch.sqrt(norm2.clamp(min=1e-16))  # clamped inside: sqrt has no gradient at 0
+    ok = F.avg_pool2d(valid, patch, stride) >= min_valid
+    if not ok.any():
+        return logits.sum() * 0.0
+    return 1.0 - cos[ok].mean()
 
 
 def distill_descriptor_loss(desc: torch.Tensor, teacher: torch.Tensor,
@@ -349,6 +397,39 @@ def assignment_nll(log_assignment: torch.Tensor, matches0: torch.Tensor,
     return zero if not terms else sum(terms) / len(terms)
 
 
+def token_confidence_loss(log_assignments: list[torch.Tensor],
+                          logits0: list[torch.Tensor], logits1: list[torch.Tensor]
+                          ) -> torch.Tensor:
+    """LightGlue's early-exit target: will a point's match change after this layer?
+
+    After layer i, a point's prediction is its row's (image 0) or column's (image 1) most
+    likely entry of that layer's log assignment, the unmatched slot included. The token
+    confidence of layer i is trained with binary cross-entropy to say whether that prediction
+    already equals the last layer's. Targets come from detached assignments.
+
+    Args:
+        log_assignments: L tensors (B, M + 1, N + 1), every layer's log assignment.
+        logits0, logits1: L - 1 tensors (B, M) / (B, N), pre-sigmoid token confidences of
+            layers 0 .. L - 2.
+    Returns:
+        scalar: mean over the layers and both images.
+    """
+    if len(logits0) != len(log_assignments) - 1 or len(logits1) != len(logits0):
+        raise ModelInputError(f'token_confidence_loss: {len(log_assignments)} layers need '
+                              f'{len(log_assignments) - 1} confidences per image, got '
+                              f'{len(logits0)} / {len(logits1)}')
+    final = log_assignments[-1].detach()
+    final0, final1 = final[:, :-1, :].argmax(-1), final[:, :, :-1].argmax(-2)
+    total = log_assignments[-1].new_zeros(())
+    for la, c0, c1 in zip(log_assignments[:-1], logits0, logits1):
+        la = la.detach()
+        same0 = (la[:, :-1, :].argmax(-1) == final0).to(c0.dtype)
+        same1 = (la[:, :, :-1].argmax(-2) == final1).to(c1.dtype)
+        total = total + 0.5 * (F.binary_cross_entropy_with_logits(c0, same0)
+                               + F.binary_cross_entropy_with_logits(c1, same1))
+    return total / max(len(logits0), 1)
+
+
 def _on_loss_grid(logits: torch.Tensor, labels: torch.Tensor, stride: int
                   ) -> tuple[torch.Tensor, torch.Tensor]:
     """Logits (B, C, h, w) and labels (B, H, W) on the loss grid of ``stride`` px (see
@@ -477,6 +558,11 @@ class MultiTaskLoss:
                     raise ModelConfigError(f'loss.{key} must be an integer >= 1 (px), got '
                                            f'{value!r}')
                 continue
+            if key == 'kp_repeat_patch':
+                if not isinstance(value, int) or isinstance(value, bool) or value < 2 or value % 2:
+                    raise ModelConfigError(f'loss.{key} must be an even integer >= 2 (px), got '
+                                           f'{value!r}')
+                continue
             if key == 'desc_negatives':
                 if value not in ('hardest', 'all', 'sum'):
                     raise ModelConfigError(
@@ -505,12 +591,17 @@ class MultiTaskLoss:
                 ``corr_valid`` (B, M) bool; optional ``photo`` (2B,) bool (views of real
                 photographs) and, for distillation, the teacher's ``teacher_desc``
                 (2B, D, H/8, W/8), ``teacher_cells`` (2B, 65, H/8, W/8) and ``teacher_valid``
-                (2B, H/8, W/8) bool covered cells.
+                (2B, H/8, W/8) bool covered cells; for ``kp_repeat_weight``, ``flow`` (B, H, W, 2)
+                px and ``flow_valid`` (B, H, W) bool (view a's pixels in view b).
         Returns:
             ``(total, logs)``, logs holding floats ``loss``, ``kp``, ``desc``, ``seg``,
-            ``pos_sim``, ``neg_sim`` (and ``distill_desc``, ``distill_kp`` when computed).
+            ``pos_sim``, ``neg_sim`` (and ``distill_desc``, ``distill_kp``, ``repeat`` when
+            computed).
         """
         c = self.conf
+        if c['kp_repeat_weight'] > 0 and 'flow' not in batch:
+            raise ModelInputError("loss.kp_repeat_weight > 0 needs the batch's dense flow "
+                                  '(data.dense_flow: true)')
         kp_valid = batch['kp_valid']
         if c['kp_photo_targets'] == 0 and 'photo' in batch:
             kp_valid = kp_valid & ~batch['photo'][:, None, None]
@@ -522,6 +613,10 @@ class MultiTaskLoss:
             l_kp = l_kp + c['kp_cell_weight'] * l_cell
         desc = pred['descriptors']
         half = desc.shape[0] // 2
+        l_repeat = None
+        if c['kp_repeat_weight'] > 0:
+            l_repeat = keypoint_repeat_loss(pred['keypoint_logits'], batch['flow'],
+                                            batch['flow_valid'], c['kp_repeat_patch'])
         l_desc, stats = descriptor_loss(
             desc[:half], desc[half:], batch['points_a'], batch['points_b'], batch['corr_valid'],
             c['desc_pos_margin'], c['desc_neg_margin'], c['desc_neg_radius'],
@@ -542,6 +637,8 @@ class MultiTaskLoss:
         total = c['w_kp'] * l_kp + c['w_desc'] * l_desc + c['w_seg'] * l_seg
         if l_dsm is not None:
             total = total + c['desc_dsm_weight'] * l_dsm
+        if l_repeat is not None:
+            total = total + c['kp_repeat_weight'] * l_repeat
         distill = {}
         if 'teacher_desc' in batch and c['distill_desc_weight'] > 0:
             distill['distill_desc'] = distill_descriptor_loss(desc, batch['teacher_desc'],
@@ -560,5 +657,7 @@ class MultiTaskLoss:
             logs['seg_lovasz'] = float(l_lovasz.detach())
         if l_dsm is not None:
             logs['dsm'] = float(l_dsm.detach())
+        if l_repeat is not None:
+            logs['repeat'] = float(l_repeat.detach())
         logs.update({k: float(v.detach()) for k, v in distill.items()})
         return total, logs

@@ -140,6 +140,8 @@ def load_train_conf(conf: dict[str, Any] | None) -> dict[str, Any]:
     if c['teacher'] is not None and c['teacher'] not in TEACHERS:
         raise ModelConfigError(f'teacher must be one of {sorted(TEACHERS)} or null, got '
                                f'{c["teacher"]!r}')
+    if c['loss']['kp_repeat_weight'] > 0 and not c['data']['dense_flow']:
+        raise ModelConfigError('loss.kp_repeat_weight > 0 needs data.dense_flow: true')
     if distill and c['teacher'] is None:
         raise ModelConfigError('loss.distill_desc_weight / distill_kp_weight > 0 need a teacher')
     if c['teacher'] is not None and any(int(x) % XFEAT_STRIDE for x in c['data']['crop_size']):
@@ -246,6 +248,9 @@ def to_tensors(batch: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
     }
     if 'coverage' in batch:
         out['coverage'] = torch.from_numpy(batch['coverage'])
+    if 'flow' in batch:
+        out['flow'] = torch.from_numpy(batch['flow'])
+        out['flow_valid'] = torch.from_numpy(batch['flow_valid'])
     return out
 
 
@@ -723,6 +728,11 @@ def model_card(model: SemFeatNet, meta: dict[str, Any], conf: dict[str, Any],
     dw = conf['loss'].get('desc_dsm_weight', 0.0)
     dsm = (f'; + the dual-softmax matching NLL of the correspondences (weight {dw}, temperature '
            f"{conf['loss'].get('desc_dsm_temperature')})" if dw else '')
+    rw = conf['loss'].get('kp_repeat_weight', 0.0)
+    if rw:
+        dsm += (f"; + the cross-view heatmap consistency (weight {rw}, 1 - cosine of "
+                f"{conf['loss'].get('kp_repeat_patch')} px windows of one view's heatmap and "
+                "the other's warped onto it)")
     ref = net.get('kp_refine_channels', 0)
     refine = (f' + a full-resolution correction (3 x 3x3 conv, {ref} channels, on the grey '
               'input and those logits)' if ref else '')
