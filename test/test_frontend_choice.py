@@ -172,6 +172,14 @@ def test_learned_matching_of_the_network_features(camera) -> None:
     d = b.keypoints[r.inlier_matches[:, 1]] - a.keypoints[r.inlier_matches[:, 0]]
     assert np.median(d[:, 0]) == pytest.approx(-6, abs=1.0)  # the image moved left
     assert ((r.scores >= 0.1) & (r.scores <= 1.0)).all()  # the matcher's confidences
+    assert LearnedMatcher('semfeat').net.conf['depth_confidence'] > 0  # early exit by default
+    full = SequentialMatcher({**conf, 'matching': {**conf['matching'],
+                                                   'learned_early_exit': False}})
+    assert LearnedMatcher('semfeat', early_exit=False).net.conf['depth_confidence'] == -1
+    full.process(a)
+    assert full.process(b).verified
+    with pytest.raises(MatchingConfigError, match='learned_early_exit'):
+        SequentialMatcher({'matching': {'learned_early_exit': 'yes'}})
 
 
 def test_node_parameters() -> None:
@@ -200,6 +208,9 @@ def test_node_parameters() -> None:
     for kind in ('semfeat', 'xfeat'):
         lg = matcher_conf(MatcherNodeConfig(frontend=kind, matcher='learned'))
         assert lg['matching']['method'] == 'learned' and lg['matching']['features'] == kind
+        assert lg['matching']['learned_early_exit']
+    assert not matcher_conf(MatcherNodeConfig(learned_early_exit=False))['matching'][
+        'learned_early_exit']
     # the offline tools override frontend and matcher
     over = matcher_conf(MatcherNodeConfig(), 'xfeat', 'learned')
     assert over['matching']['method'] == 'learned' and over['matching']['features'] == 'xfeat'
@@ -221,8 +232,10 @@ def test_match_pairs_tool_on_three_frames() -> None:
 
     r = match_pairs.run(REPO / 'bags' / 'garage_ramp_seed0', frames=3)
     assert r['frames'] == 3
+    assert match_pairs.methods('semfeat') == ('mnn', 'learned', 'learned_all')
+    assert 'xfeat_learned_all' not in r  # LighterGlue has no trained early exit
     for kind in match_pairs.FRONTENDS:
-        for m in match_pairs.METHODS:
+        for m in match_pairs.methods(kind):
             s = r[f'{kind}_{m}']
             assert s['pairs'] == 2 and s['matcher_ms_median'] > 0
             assert 0 < s['verified_median'] <= s['matches_median']
@@ -231,4 +244,5 @@ def test_match_pairs_tool_on_three_frames() -> None:
         assert r[f'{kind}_frontend_ms_median'] > 0
     assert r['xfeat_learned']['verified_frames'] == 1.0
     table = match_pairs.format_table(r)
-    assert table.count('\n') == 5 and '| xfeat + learned |' in table
+    assert table.count('\n') == 6 and '| xfeat + learned |' in table
+    assert '| semfeat + learned_all |' in table

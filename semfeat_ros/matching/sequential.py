@@ -65,6 +65,10 @@ default_conf: dict[str, Any] = {
         'learned_min_score': 0.1,
         # learned: torch intra-op threads (torch.set_num_threads, process-wide).
         'learned_num_threads': 1,
+        # learned, features 'semfeat': SemfeatGlue stops after the first layer where its token
+        # confidences say 95 % of the points' matches are settled (LightGlue's early exit);
+        # False: every layer runs. LighterGlue's confidences are untrained: it always runs all.
+        'learned_early_exit': True,
         # 'float': L2-normalised float descriptors compared by cosine similarity (the network);
         # 'binary': packed uint8 descriptors compared by Hamming distance (ORB/BRISK baselines).
         'descriptor_type': 'float',
@@ -121,6 +125,9 @@ def _check_conf(conf: Mapping[str, Any]) -> None:
         raise MatchingConfigError("matching.method 'learned' needs float descriptors")
     check_range(m, 'learned_min_score', 0.0, 1.0, 'matching')
     check_range(m, 'learned_num_threads', 1, 256, 'matching', integer=True)
+    if not isinstance(m['learned_early_exit'], bool):
+        raise MatchingConfigError(f"matching.learned_early_exit: expected true or false, got "
+                                  f"{m['learned_early_exit']!r}")
     if m['descriptor_type'] not in ('float', 'binary'):
         raise MatchingConfigError(
             f"matching.descriptor_type: expected 'float' or 'binary', got "
@@ -332,7 +339,8 @@ class SequentialMatcher:
 
             m = self.conf['matching']
             self._learned = LearnedMatcher(m['features'], m['learned_min_score'],
-                                           m['learned_num_threads'])
+                                           m['learned_num_threads'],
+                                           early_exit=m['learned_early_exit'])
 
     # -----------------------------------------------------------------------------------------
 

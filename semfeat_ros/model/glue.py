@@ -10,8 +10,9 @@ network's descriptor space. The shipped weights (``semfeat_ros/weights/semfeat_g
 tied to the SemFeatNet weights they were trained on: their JSON records those weights' SHA-256.
 
 :meth:`SemfeatGlue.forward` is the pure training forward (every layer's log assignment, for
-deep supervision); :meth:`SemfeatGlue.match` the inference path (kornia's forward, with point
-pruning on its intermediate matchability as in LighterGlue).
+deep supervision, and every layer's token confidence); :meth:`SemfeatGlue.match` the inference
+path (kornia's forward, with point pruning on its intermediate matchability and early exit on
+its token confidences, as in LightGlue).
 """
 from __future__ import annotations
 
@@ -52,7 +53,6 @@ GLUE_ARCH: dict[str, Any] = {
     'num_heads': 1,
     'flash': True,  # torch's scaled_dot_product_attention
     'mp': False,  # no mixed precision
-    'depth_confidence': -1,  # no early stop (its token confidences are not trained here)
     'weights': None,  # never let kornia look for a weight file or download one
 }
 """kornia ``LightGlue`` configuration of the architecture (LighterGlue's)."""
@@ -82,6 +82,10 @@ class SemfeatGlue(nn.Module):
         'filter_threshold': 0.1,  # minimum match confidence kept by match()
         'width_confidence': 0.95,  # point pruning at inference: drop points whose matchability
         #                            falls below 1 - this after a layer; -1 = off
+        'depth_confidence': 0.95,  # early exit at inference: stop after the first layer where
+        #                            this share of the points is confident that its match will
+        #                            not change (LightGlue's token confidences); -1 = off; needs
+        #                            weights whose confidences were trained (load_glue checks)
         'num_threads': None,  # torch intra-op CPU threads set at construction (process-wide,
         #                       torch.set_num_threads); None leaves them as they are
     }
@@ -99,6 +103,7 @@ class SemfeatGlue(nn.Module):
             torch.set_num_threads(int(self.conf['num_threads']))
         self.net = _lightglue()(None, **{
             **GLUE_ARCH, 'width_confidence': float(self.conf['width_confidence']),
+            'depth_confidence': float(self.conf['depth_confidence']),
             'filter_threshold': float(self.conf['filter_threshold'])})
 
     @property
@@ -107,8 +112,9 @@ class SemfeatGlue(nn.Module):
 
     def forward(self, kpts0: torch.Tensor, kpts1: torch.Tensor, desc0: torch.Tensor,
                 desc1: torch.Tensor, size0: torch.Tensor, size1: torch.Tensor
-                ) -> list[torch.Tensor]:
-        """Every layer's log assignment, no pruning (the training forward).
+                ) -> dict[str, list[torch.Tensor]]:
+        """Every layer's log assignment and token confidence, no pruning or early exit (the
+        training forward).
 
         Args:
             kpts0: (B, M, 2) keypoints of image 0, px (x, y).
@@ -119,8 +125,11 @@ class SemfeatGlue(nn.Module):
             size1: (B, 2) image 1's (width, height), px.
 
         Returns:
-            ``n_layers`` tensors (B, M + 1, N + 1): log assignment probabilities with the
-            unmatched column and row (LightGlue's dual softmax and matchability).
+            ``log_assignment``: ``n_layers`` tensors (B, M + 1, N + 1), log assignment
+            probabilities with the unmatched column and row (LightGlue's dual softmax and
+            matchability); ``confidence_logits0`` / ``confidence_logits1``: ``n_layers - 1``
+            tensors (B, M) / (B, N), the pre-sigmoid token confidences after each layer but the
+            last (computed on detached states: their loss trains only the confidence heads).
         """
         from kornia.feature.lightglue import normalize_keypoints
 
@@ -128,10 +137,15 @@ class SemfeatGlue(nn.Module):
         k0, k1 = normalize_keypoints(kpts0, size0), normalize_keypoints(kpts1, size1)
         d0, d1 = net.input_proj(desc0), net.input_proj(desc1)
         e0, e1 = net.posenc(k0), net.posenc(k1)
-        out = []
+        out: dict[str, list[torch.Tensor]] = {'log_assignment': [], 'confidence_logits0': [],
+                                              'confidence_logits1': []}
         for i in range(self.n_layers):
             d0, d1 = net.transformers[i](d0, d1, e0, e1)
-            out.append(net.log_assignment[i](d0, d1)[0])
+            out['log_assignment'].append(net.log_assignment[i](d0, d1)[0])
+            if i < self.n_layers - 1:
+                linear = net.token_confidence[i].token[0]  # the head's Linear, before its sigmoid
+                out['confidence_logits0'].append(linear(d0.detach()).squeeze(-1))
+                out['confidence_logits1'].append(linear(d1.detach()).squeeze(-1))
         return out
 
     @torch.inference_mode()
@@ -241,6 +255,10 @@ def load_glue(path: str | Path | None = None, conf: dict[str, Any] | None = None
     path = Path(path) if path is not None else SHIPPED_GLUE
     meta = read_glue_meta(path)
     model = SemfeatGlue(conf)
+    if model.conf['depth_confidence'] > 0 and not meta.get('token_confidence_trained'):
+        raise ModelConfigError(f'{path}: its token confidences were not trained on these '
+                               f'features; early exit needs them (set glue depth_confidence -1 '
+                               f'or retrain with semfeat-train-glue)')
     try:
         state = {k: v.float() for k, v in load_file(str(path.with_suffix('.safetensors'))).items()}
     except Exception as exc:  # noqa: BLE001 - safetensors raises several types for bad files

