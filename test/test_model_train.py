@@ -337,8 +337,20 @@ def test_shipped_config_files_match_the_code() -> None:
         {k: v for k, v in stage10['loss'].items() if k != 'desc_dsm_weight'}
     assert {k: v for k, v in stage9.items() if k not in ('init_weights', 'steps', 'loss')} == \
         {k: v for k, v in stage10.items() if k not in ('init_weights', 'steps', 'loss')}
-    assert meta['training']['init_weights'] == stage10['init_weights']
-    assert meta['training']['train_only'] == stage10['train_only']
+    stage11 = load_train_conf(read_config(REPO / 'config' / 'distill_stage11.yaml'))  # shipped
+    assert stage11['init_weights'] == stage10['init_weights'].replace('train_v14', 'train_v15')
+    assert stage11['loss']['kp_repeat_weight'] > 0 == stage10['loss']['kp_repeat_weight']
+    assert stage11['data']['dense_flow'] and not stage10['data']['dense_flow']
+    rep = ('kp_repeat_weight', 'kp_repeat_patch')
+    assert {k: v for k, v in stage10['loss'].items() if k not in rep} == \
+        {k: v for k, v in stage11['loss'].items() if k not in rep}  # stage 10's + consistency
+    assert {k: v for k, v in stage10['data'].items() if k != 'dense_flow'} == \
+        {k: v for k, v in stage11['data'].items() if k != 'dense_flow'}
+    assert {k: v for k, v in stage10.items() if k not in ('init_weights', 'steps', 'loss',
+                                                          'data')} == \
+        {k: v for k, v in stage11.items() if k not in ('init_weights', 'steps', 'loss', 'data')}
+    assert meta['training']['init_weights'] == stage11['init_weights']
+    assert meta['training']['train_only'] == stage11['train_only']
     assert meta['training']['teacher'] == 'xfeat'
     assert stage5['train_only'] == [] and stage5['warmup_fraction'] == 0.0  # the whole network
     assert stage5['init_weights'] == stage4['init_weights'].replace('train_v8', 'train_v9')
@@ -361,6 +373,8 @@ def test_shipped_config_files_match_the_code() -> None:
         load_train_conf({'stepz': 3})
     with pytest.raises(ModelConfigError, match='freeze_levels'):
         load_train_conf({'freeze_levels': 9})
+    with pytest.raises(ModelConfigError, match='dense_flow'):
+        load_train_conf({'loss': {'kp_repeat_weight': 1.0}})
     with pytest.raises(ModelConfigError, match='multiples of the network stride, 8 px'):
         load_train_conf({'network': {'encoder_channels': [8, 8, 8]},
                          'data': {'crop_size': [96, 100]}})
