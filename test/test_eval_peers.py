@@ -218,3 +218,11 @@ def test_semfeat_lg_needs_matcher_weights_of_the_same_network(tmp_path: Path) ->
     runnable, skipped = build_methods(EvalConf(methods=('semfeat_lg',), glue_weights=str(other)))
     assert not runnable and 'other network weights' in skipped['semfeat_lg']
     assert '\n' not in skipped['semfeat_lg']
+    # the right network, but early exit (the default) without trained token confidences
+    from semfeat_ros.model.glue import file_sha256
+    from semfeat_ros.model.weights_io import SHIPPED_WEIGHTS
+    untrained = save_glue(SemfeatGlue(), tmp_path / 'untrained',
+                          {'semfeat_weights_sha256': file_sha256(SHIPPED_WEIGHTS)})
+    runnable, skipped = build_methods(EvalConf(methods=('semfeat_lg',),
+                                               glue_weights=str(untrained)))
+    assert not runnable and 'token confidences were not trained' in skipped['semfeat_lg']

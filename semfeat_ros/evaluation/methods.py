@@ -544,8 +544,12 @@ def semfeat_glue(conf: MethodConf) -> object:
     features of ``conf.weights`` (the SHA-256 its JSON records); it has
     ``semfeat_ros.model.peers.PeerMatcher``'s ``match``."""
     try:
-        from semfeat_ros.model.errors import WeightsFormatError, WeightsNotFoundError
-        from semfeat_ros.model.glue import file_sha256, load_glue
+        from semfeat_ros.model.errors import (
+            ModelConfigError,
+            WeightsFormatError,
+            WeightsNotFoundError,
+        )
+        from semfeat_ros.model.glue import file_sha256, load_glue, read_glue_meta
         from semfeat_ros.model.weights_io import resolve_weights_path
     except ImportError as exc:
         raise MethodUnavailableError(f'semfeat_ros.model.glue is not available ({exc})') from exc
@@ -554,15 +558,15 @@ def semfeat_glue(conf: MethodConf) -> object:
         net_sha = file_sha256(resolve_weights_path(conf.weights))
         key = (str(glue_path), net_sha)
         if key not in _GLUE_CACHE:
-            model, meta = load_glue(glue_path, {'num_threads': _peer_threads(conf)})
+            meta = read_glue_meta(glue_path)
             if meta['semfeat_weights_sha256'] != net_sha:
                 raise MethodUnavailableError(
                     f'SemfeatGlue weights {glue_path or "(shipped)"} were trained on the '
                     f'features of other network weights than {conf.weights or "the shipped"} '
                     f'(SHA-256 {meta["semfeat_weights_sha256"][:12]}, not {net_sha[:12]}): '
                     f'pass the matching --glue-weights or retrain with semfeat-train-glue')
-            _GLUE_CACHE[key] = model
-    except (WeightsFormatError, WeightsNotFoundError) as exc:
+            _GLUE_CACHE[key] = load_glue(glue_path, {'num_threads': _peer_threads(conf)})[0]
+    except (ModelConfigError, WeightsFormatError, WeightsNotFoundError) as exc:
         raise MethodUnavailableError(str(exc)) from exc
     return _GLUE_CACHE[key]
 
