@@ -34,8 +34,8 @@ class LearnedMatcher:
         if features == 'semfeat':
             from semfeat_ros.model.glue import load_glue
 
-            self.net, _ = load_glue(None, {**conf, 'depth_confidence': 0.95 if early_exit
-                                           else -1})
+            self.net, _ = load_glue(None, conf if early_exit else {**conf,
+                                                                    'depth_confidence': -1})
         else:
             from semfeat_ros.model.peers import load_matcher
 

@@ -66,6 +66,13 @@ def _lightglue() -> Any:
     return LightGlue
 
 
+def _check_descriptors(*descs: np.ndarray) -> None:
+    for d in descs:
+        if np.ndim(d) != 2 or np.shape(d)[1] != GLUE_ARCH['input_dim']:
+            raise ModelInputError(f'SemfeatGlue: descriptors of shape {np.shape(d)} are not '
+                                  f'(N, {GLUE_ARCH["input_dim"]})')
+
+
 def file_sha256(path: str | Path) -> str:
     """Hex SHA-256 of a file's bytes."""
     h = hashlib.sha256()
@@ -149,6 +156,22 @@ class SemfeatGlue(nn.Module):
         return out
 
     @torch.inference_mode()
+    def infer(self, kp0: np.ndarray, desc0: np.ndarray, kp1: np.ndarray, desc1: np.ndarray,
+              size0: tuple[int, int], size1: tuple[int, int]) -> dict[str, Any]:
+        """kornia's inference forward (pruning and early exit as configured) on two images'
+        keypoints (N, 2) px and unit descriptors (N, 64) of sizes (width, height) px; its output
+        dict (``matches``, ``scores``, ``matches0``, ``stop``: the layers run, ...)."""
+        _check_descriptors(desc0, desc1)
+
+        def image(kp: np.ndarray, desc: np.ndarray, size: tuple[int, int]
+                  ) -> dict[str, torch.Tensor]:
+            return {'keypoints': torch.from_numpy(np.ascontiguousarray(kp, np.float32))[None],
+                    'descriptors': torch.from_numpy(np.ascontiguousarray(desc,
+                                                                         np.float32))[None],
+                    'image_size': torch.tensor([size], dtype=torch.float32)}
+
+        return self.net({'image0': image(kp0, desc0, size0), 'image1': image(kp1, desc1, size1)})
+
     def match(self, f0: Any, f1: Any, size0: tuple[int, int], size1: tuple[int, int]
               ) -> tuple[np.ndarray, np.ndarray]:
         """Matches between two images' features (``keypoints`` (N, 2) px and unit
@@ -156,23 +179,11 @@ class SemfeatGlue(nn.Module):
         interface of :class:`~semfeat_ros.model.peers.PeerMatcher`) of sizes (width, height)
         px; returns (M, 2) int64 index pairs sorted by the first index and their (M,) float32
         confidences (at least ``filter_threshold``)."""
-        for f in (f0, f1):
-            if np.ndim(f.descriptors) != 2 or np.shape(f.descriptors)[1] != \
-                    GLUE_ARCH['input_dim']:
-                raise ModelInputError(f'SemfeatGlue: descriptors of shape '
-                                      f'{np.shape(f.descriptors)} are not '
-                                      f'(N, {GLUE_ARCH["input_dim"]})')
         if len(f0.keypoints) == 0 or len(f1.keypoints) == 0:
+            _check_descriptors(f0.descriptors, f1.descriptors)
             return np.zeros((0, 2), np.int64), np.zeros(0, np.float32)
-
-        def image(f: Any, size: tuple[int, int]) -> dict[str, torch.Tensor]:
-            return {'keypoints': torch.from_numpy(np.ascontiguousarray(f.keypoints,
-                                                                       np.float32))[None],
-                    'descriptors': torch.from_numpy(np.ascontiguousarray(f.descriptors,
-                                                                         np.float32))[None],
-                    'image_size': torch.tensor([size], dtype=torch.float32)}
-
-        out = self.net({'image0': image(f0, size0), 'image1': image(f1, size1)})
+        out = self.infer(f0.keypoints, f0.descriptors, f1.keypoints, f1.descriptors, size0,
+                         size1)
         matches = out['matches'][0].numpy().astype(np.int64).reshape(-1, 2)
         scores = out['scores'][0].numpy().astype(np.float32).reshape(-1)
         order = np.lexsort((matches[:, 1], matches[:, 0]))

@@ -272,30 +272,13 @@ def match_quality(pred0: np.ndarray, m0: np.ndarray) -> tuple[int, int, int]:
     return correct, int(counted.sum()), int((m0 >= 0).sum())
 
 
-def _early_exit(model: SemfeatGlue, p: dict[str, np.ndarray], depth_confidence: float
-                ) -> tuple[np.ndarray, int]:
-    """Image 0's predicted partners (-1 none) and the number of layers run, by the inference
-    path (pruning and early exit at ``depth_confidence``)."""
-    net = model.net
-    saved = net.conf.depth_confidence
-    net.conf.depth_confidence = float(depth_confidence)
-    try:
-        size = torch.from_numpy(np.asarray(p['size'], np.float32))[None]
-        out = net({f'image{k}': {'keypoints': torch.from_numpy(p[f'kp{k}'])[None],
-                                 'descriptors': torch.from_numpy(p[f'desc{k}'])[None],
-                                 'image_size': size} for k in (0, 1)})
-    finally:
-        net.conf.depth_confidence = saved
-    return out['matches0'][0].numpy().astype(np.int64), int(out['stop'])
-
-
 @torch.inference_mode()
-def validate(model: SemfeatGlue, pairs: list[dict[str, np.ndarray]], threshold: float,
-             depth_confidence: float = 0.95) -> dict[str, float]:
+def validate(model: SemfeatGlue, pairs: list[dict[str, np.ndarray]], threshold: float
+             ) -> dict[str, float]:
     """Over ``pairs``: the loss, precision and recall of the matcher (its last layer's
     matches, kornia's ``filter_matches`` at ``threshold`` as at inference), of its inference
-    path with early exit at ``depth_confidence`` (``exit_*``; ``exit_layers`` the mean number
-    of layers run) and of mutual NN on the raw descriptors."""
+    path (:meth:`SemfeatGlue.infer`, with the model's early exit: ``exit_*``, ``exit_layers``
+    the mean number of layers run) and of mutual NN on the raw descriptors."""
     from kornia.feature.lightglue import filter_matches
 
     model.eval()
@@ -309,9 +292,10 @@ def validate(model: SemfeatGlue, pairs: list[dict[str, np.ndarray]], threshold: 
         conf_losses.append(float(token_confidence_loss(la, out['confidence_logits0'],
                                                        out['confidence_logits1'])))
         glue += match_quality(filter_matches(la[-1], threshold)[0][0].numpy(), p['m0'])
-        pred0, stop = _early_exit(model, p, depth_confidence)
-        exit_ += match_quality(pred0, p['m0'])
-        layers.append(stop)
+        size = tuple(float(x) for x in p['size'])
+        inferred = model.infer(p['kp0'], p['desc0'], p['kp1'], p['desc1'], size, size)
+        exit_ += match_quality(inferred['matches0'][0].numpy().astype(np.int64), p['m0'])
+        layers.append(int(inferred['stop']))
         nn_pairs = mutual_nn(p['desc0'], p['desc1'])
         nn_pred0 = np.full(len(p['m0']), -1, np.int64)
         nn_pred0[nn_pairs[:, 0]] = nn_pairs[:, 1]
@@ -415,7 +399,8 @@ def main(conf: dict[str, Any], out: Path, *, export: Path | None = None,
     pairs_s = time.monotonic() - t0
 
     torch.manual_seed(int(c['seed']))
-    model = SemfeatGlue({'filter_threshold': float(c['filter_threshold'])})
+    model = SemfeatGlue({'filter_threshold': float(c['filter_threshold']),
+                         'depth_confidence': float(c['depth_confidence'])})
     source = init_from_lighterglue(model)
     model.train()
     opt = torch.optim.AdamW(model.parameters(), lr=float(c['lr']),
@@ -429,8 +414,7 @@ def main(conf: dict[str, Any], out: Path, *, export: Path | None = None,
     for name in ('train_log.csv', 'val_log.csv'):
         (out / name).unlink(missing_ok=True)
     def check(step: int) -> dict[str, float]:
-        return {'step': step, **validate(model, val, float(c['filter_threshold']),
-                                         float(c['depth_confidence']))}
+        return {'step': step, **validate(model, val, float(c['filter_threshold']))}
 
     first = check(0)
     append_csv(out / 'val_log.csv', first)
