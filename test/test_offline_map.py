@@ -7,6 +7,7 @@ covered level (``--start 12 --max-frames 60``, about 20 m).
 """
 from __future__ import annotations
 
+from collections import Counter
 import json
 from pathlib import Path
 
@@ -54,7 +55,7 @@ def orb_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict, list]
 
 
 def test_orb_end_to_end_outputs(orb_run: tuple[Path, dict, list]) -> None:
-    out, m, _ = orb_run
+    out, m, tracks = orb_run
     for name in ('cloud.ply', 'trajectory.tum', 'trajectory_online.tum', 'metrics.json',
                  'trajectory_top.png', 'altitude.png', 'cloud.png'):
         assert (out / name).is_file(), name
@@ -73,6 +74,12 @@ def test_orb_end_to_end_outputs(orb_run: tuple[Path, dict, list]) -> None:
     assert not np.isin(cloud.label, [16, 17, 18]).any()
     assert m['keyframe_update_ms']['median'] > 0 and m['frontend_ms']['p95'] > 0
     assert m['matcher_ms']['median'] > 0
+    # track length: frames a track id is published in, one value per track
+    seen = Counter(i for _, _, c in tracks for i in c['track_id'].tolist())
+    lengths = np.array(list(seen.values()), float)
+    assert m['run']['track_length_frames']['n'] == len(seen) > 100
+    assert m['track_length_frames']['median'] == pytest.approx(np.median(lengths))
+    assert np.median(lengths) >= 2
 
 
 def test_orb_accuracy_on_the_ramp(orb_run: tuple[Path, dict, list]) -> None:

@@ -19,7 +19,7 @@ from semfeat_ros.labels import load_labels
 from semfeat_ros.mapping import write_ply, write_tum
 from semfeat_ros.offline import figures
 from semfeat_ros.offline.errors import EvaluationError
-from semfeat_ros.offline.mapping_run import MapRun
+from semfeat_ros.offline.mapping_run import FrameRecord, MapRun
 from semfeat_ros.offline.metrics import (
     RAMP_PITCH_RAD,
     DepthView,
@@ -54,7 +54,7 @@ HEADLINE_KEYS = (
     'ate_sim3_rmse_m', 'ate_se3_rmse_m', 'scale_sim3', 'ramp_altitude_rmse_sim3_m',
     'ramp_altitude_max_sim3_m', 'ramp_altitude_rmse_se3_m', 'ramp_altitude_max_se3_m',
     'floor_accuracy', 'dynamic_points', 'cloud_points', 'frames_read', 'frames_processed',
-    'keyframes', 'keyframe_update_ms', 'frontend_ms', 'matcher_ms',
+    'keyframes', 'keyframe_update_ms', 'frontend_ms', 'matcher_ms', 'track_length_frames',
 )
 
 
@@ -72,6 +72,15 @@ def json_safe(obj: Any) -> Any:
         f = float(obj)
         return f if math.isfinite(f) else None
     return obj
+
+
+def track_lengths(records: Sequence[FrameRecord]) -> list[float]:
+    """Frames each track id was seen in, over the records' tracks (one value per track)."""
+    seen: Counter[int] = Counter()
+    for r in records:
+        if r.track_ids is not None:
+            seen.update(np.asarray(r.track_ids, np.int64).tolist())
+    return [float(n) for n in seen.values()]
 
 
 def run_summary(run: MapRun) -> dict[str, Any]:
@@ -107,6 +116,7 @@ def run_summary(run: MapRun) -> dict[str, Any]:
         'matcher_ms': timing_stats([r.matcher_ms for r in feats]),
         'features_per_frame': timing_stats([float(r.n_features) for r in feats]),
         'tracks_per_frame': timing_stats([float(r.n_tracks) for r in run.records]),
+        'track_length_frames': timing_stats(track_lengths(run.records)),
         'mapper_stats': dict(mapper.stats), 'wall_s': round(run.wall_s, 3),
         'odometry_calibration': mapper.odometry_calibration,
     }
@@ -202,6 +212,8 @@ def write_map_outputs(run: MapRun, out_dir: Path, gt: tuple[np.ndarray, np.ndarr
         'keyframe_update_ms': {k: summary['keyframe_update_ms'][k] for k in ('median', 'p95')},
         'frontend_ms': {k: summary['frontend_ms'][k] for k in ('median', 'p95')},
         'matcher_ms': {k: summary['matcher_ms'][k] for k in ('median', 'p95')},
+        'track_length_frames': {k: summary['track_length_frames'][k]
+                                for k in ('median', 'p95')},
     }
     result = {**head, 'has_ground_truth': gt is not None and len(gt[0]) > 0, **metrics,
               'run': summary, 'files': dict(FILES), **(extra or {})}
