@@ -1,8 +1,10 @@
 """The demo: the three nodes as processes on the bundled bag, replayed with /clock.
 
     python -m semfeat_ros.tools.demo --out out/demo [--bag bags/garage_ramp_seed0]
+        [--param feature_node.frontend=xfeat --param matcher_node.matcher=learned ...]
 
-Starts feature_node, matcher_node and mapping_node with their shipped parameter files, records
+Starts feature_node, matcher_node and mapping_node with their shipped parameter files (and
+the ``--param`` overrides, as ``ros2 run ... -p name:=value`` would), records
 their outputs with ``semfeat-record``, replays the bag with ``semfeat-play --clock``, saves the
 map through ``~/save_map`` and writes into ``--out``: the output bag, ``cloud.ply``,
 ``trajectory.tum``, figures (trajectory vs ground truth, altitude profile, a sample frame with
@@ -11,7 +13,7 @@ keypoints and semantic overlay, a match view) and ``summary.json``; it prints a 
 from __future__ import annotations
 
 import argparse
-from dataclasses import dataclass
+from dataclasses import dataclass, field, fields
 import json
 import os
 from pathlib import Path
@@ -40,6 +42,28 @@ class DemoConfig:
     domain_id: int = 57
     rate: float = 1.0
     drain_timeout_s: float = 60.0
+    node_params: dict[str, dict[str, str]] = field(default_factory=dict)  # --param overrides
+
+
+def parse_params(items: list[str]) -> dict[str, dict[str, str]]:
+    """``NODE.NAME=VALUE`` items as ``{node: {name: value}}``; the node must be one of the
+    demo's and the name a parameter of its typed config (docs/PARAMETERS.md)."""
+    from semfeat_ros.tools.node_config import config_class
+
+    out: dict[str, dict[str, str]] = {}
+    for item in items:
+        key, sep, value = item.partition('=')
+        node, dot, name = key.partition('.')
+        if not sep or not dot or not name or not value:
+            raise DemoError(f'--param {item!r}: expected NODE.NAME=VALUE, e.g. '
+                            f'feature_node.frontend=xfeat')
+        if node not in NODES:
+            raise DemoError(f'--param {item!r}: unknown node {node!r} (one of {", ".join(NODES)})')
+        if name not in {f.name for f in fields(config_class(node))}:
+            raise DemoError(f'--param {item!r}: {node} has no parameter {name!r} '
+                            f'(docs/PARAMETERS.md)')
+        out.setdefault(node, {})[name] = value
+    return out
 
 
 class GraphClient:
@@ -115,7 +139,7 @@ def run_pipeline(conf: DemoConfig) -> dict[str, Any]:
     if record_dir.exists():
         import shutil
         shutil.rmtree(record_dir)
-    pcfg = PipelineConfig(domain_id=conf.domain_id, output_dir=out)
+    pcfg = PipelineConfig(domain_id=conf.domain_id, output_dir=out, node_params=conf.node_params)
     client = GraphClient(conf.domain_id)
     t0 = time.monotonic()
     try:
@@ -150,7 +174,7 @@ def run_pipeline(conf: DemoConfig) -> dict[str, Any]:
     finally:
         client.close()
     return {'diagnostics': client.status, 'save_map': message, 'exit_codes': codes,
-            'startup_s': t_up, 'wall_s': time.monotonic() - t0}
+            'startup_s': t_up, 'wall_s': time.monotonic() - t0, 'node_params': conf.node_params}
 
 
 def cli(argv: list[str] | None = None) -> int:
@@ -159,9 +183,13 @@ def cli(argv: list[str] | None = None) -> int:
     parser.add_argument('--out', type=Path, default=Path('out/demo'), help='output directory')
     parser.add_argument('--domain', type=int, default=57, help='ROS_DOMAIN_ID (0-101)')
     parser.add_argument('--rate', type=float, default=1.0, help='replay speed factor')
+    parser.add_argument('--param', action='append', default=[], metavar='NODE.NAME=VALUE',
+                        help='a node parameter over its shipped file, e.g. '
+                             'feature_node.frontend=xfeat (repeatable)')
     args = parser.parse_args(argv)
-    conf = DemoConfig(bag=args.bag, out=args.out, domain_id=args.domain, rate=args.rate)
     try:
+        conf = DemoConfig(bag=args.bag, out=args.out, domain_id=args.domain, rate=args.rate,
+                          node_params=parse_params(args.param))
         check_ready(conf)
         conf.out.mkdir(parents=True, exist_ok=True)
         run = run_pipeline(conf)

@@ -134,7 +134,8 @@ def write_report(bag: Path, out: Path, run: dict[str, Any]) -> dict[str, Any]:
     summary: dict[str, Any] = {'bag': str(bag), 'wall_time_s': round(run['wall_s'], 1),
                                'startup_s': round(run['startup_s'], 1),
                                'exit_codes': run['exit_codes'], 'save_map': run['save_map'],
-                               'recorded_messages': outputs['counts']}
+                               'recorded_messages': outputs['counts'],
+                               'node_params': run.get('node_params', {})}
     diag = run['diagnostics']
     nodes = {}
     for node in ('feature_node', 'matcher_node', 'mapping_node'):
@@ -198,6 +199,8 @@ def _print(s: dict[str, Any]) -> None:
         return 'n/a' if x is None or not np.isfinite(x) else f'{1000 * x:.0f} ms'
 
     print('\nsemfeat_ros demo summary')
+    for node, params in (s.get('node_params') or {}).items():
+        print(f'  {node:13s} ' + ', '.join(f'{k}:={v}' for k, v in params.items()))
     for node, v in s['nodes'].items():
         print(f'  {node:13s} frames {v["frames_processed"] or 0:.0f}/'
               f'{v["frames_received"] or 0:.0f} processed, {v["frames_dropped"] or 0:.0f} '
