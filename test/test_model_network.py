@@ -17,6 +17,7 @@ from semfeat_ros.model.losses import (
     dual_softmax_loss,
     keypoint_cell_loss,
     keypoint_loss,
+    keypoint_peaky_loss,
     keypoint_repeat_loss,
     lovasz_softmax_loss,
     sample_descriptors,
@@ -485,6 +486,49 @@ def test_keypoint_repeat_loss_rewards_heatmaps_that_follow_the_flow() -> None:
         MultiTaskLoss({'kp_repeat_weight': 1.0})(
             {'keypoint_logits': logits}, {'kp_target': torch.zeros(2 * b, h, w),
                                           'kp_valid': torch.ones(2 * b, h, w, dtype=torch.bool)})
+
+
+def test_keypoint_peaky_loss_rewards_one_clear_peak_a_window() -> None:
+    n, h, w = 2, 16, 24
+    valid = torch.ones(n, h, w, dtype=torch.bool)
+    flat = torch.zeros(n, 1, h, w)  # sigmoid 0.5 everywhere: max - mean = 0
+    assert keypoint_peaky_loss(flat, valid, patch=8).item() == pytest.approx(1.0, abs=1e-6)
+    peaked = torch.full((n, 1, h, w), -20.0)
+    peaked[:, :, 2::4, 2::4] = 20.0  # a peak in every 8 px window (stride 4)
+    loss = keypoint_peaky_loss(peaked, valid, patch=8)
+    assert loss.item() == pytest.approx(1.0 - (1.0 - 4 / 64), abs=1e-4)
+    # hand check of one window, half of it valid: max and mean over the valid pixels only
+    x = torch.randn(1, 1, 8, 8) * 2
+    half = torch.zeros(1, 8, 8, dtype=torch.bool)
+    half[:, :, :4] = True
+    p = torch.sigmoid(x[0, 0, :, :4])
+    assert keypoint_peaky_loss(x, half, patch=8).item() == pytest.approx(
+        1.0 - (p.max() - p.mean()).item(), abs=1e-5)
+    # too few valid pixels: 0 with a graph; masked pixels get no gradient
+    few = torch.zeros(1, 8, 8, dtype=torch.bool)
+    few[:, 0, 0] = True
+    assert keypoint_peaky_loss(x, few, patch=8).item() == 0.0
+    g = x.clone().requires_grad_()
+    keypoint_peaky_loss(g, half, patch=8).backward()
+    assert torch.isfinite(g.grad).all() and g.grad[0, 0, :, :4].abs().sum() > 0
+    assert (g.grad[0, 0, :, 4:] == 0).all()
+    with pytest.raises(ModelInputError, match='valid'):
+        keypoint_peaky_loss(x, valid, patch=8)
+    # in the total loss: logged, and added with its weight
+    torch.manual_seed(0)
+    pred = {'keypoint_logits': torch.randn(2, 1, 8, 8),
+            'descriptors': F.normalize(torch.randn(2, 4, 1, 1), dim=1),
+            'segmentation_logits': torch.randn(2, 19, 2, 2)}
+    batch = {'kp_target': torch.zeros(2, 8, 8), 'kp_valid': torch.ones(2, 8, 8, dtype=torch.bool),
+             'label': torch.full((2, 8, 8), 255), 'points_a': torch.zeros(1, 1, 2),
+             'points_b': torch.zeros(1, 1, 2), 'corr_valid': torch.zeros(1, 1, dtype=torch.bool)}
+    base_total, base = MultiTaskLoss({'kp_repeat_patch': 4})(pred, batch)
+    total, logs = MultiTaskLoss({'kp_peaky_weight': 2.0, 'kp_repeat_patch': 4})(pred, batch)
+    peaky = float(keypoint_peaky_loss(pred['keypoint_logits'], batch['kp_valid'], patch=4))
+    assert logs['peaky'] == pytest.approx(peaky) and 'peaky' not in base
+    assert float(total) == pytest.approx(float(base_total) + 2.0 * peaky, abs=1e-5)
+    with pytest.raises(ModelConfigError, match='kp_peaky_weight'):
+        MultiTaskLoss({'kp_peaky_weight': -1.0})
 
 
 def test_segmentation_loss_ignores_255() -> None:

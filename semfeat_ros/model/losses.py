@@ -52,7 +52,10 @@ default_loss_conf: dict[str, Any] = {
     'desc_dsm_temperature': 0.1,  # cosine similarities are divided by this before the softmax
     'kp_repeat_weight': 0.0,  # weight of L_repeat, the cross-view consistency of the predicted
     #                           heatmaps (see keypoint_repeat_loss); needs data.dense_flow; 0: off
-    'kp_repeat_patch': 16,  # px, side of the square windows L_repeat compares (stride half that)
+    'kp_repeat_patch': 16,  # px, side of the square windows L_repeat and L_peaky read (stride
+    #                         half that)
+    'kp_peaky_weight': 0.0,  # weight of L_peaky, the peakiness of the predicted heatmap in each
+    #                          window (see keypoint_peaky_loss); 0: off
     'kp_photo_targets': 1.0,  # 1: the ground-truth keypoint terms also train on photo pairs
     #                           (homographically adapted corners); 0: photos' keypoints are
     #                           learnt from the teacher only
@@ -165,6 +168,42 @@ def keypoint_repeat_loss(logits: torch.Tensor, flow: torch.Tensor, flow_valid: t
     if not ok.any():
         return logits.sum() * 0.0
     return 1.0 - cos[ok].mean()
+
+
+def keypoint_peaky_loss(logits: torch.Tensor, valid: torch.Tensor, patch: int = 16,
+                        min_valid: float = 0.5) -> torch.Tensor:
+    """Peakiness of the predicted heatmap (R2D2's peaky loss, the partner of its repeatability
+    loss, :func:`keypoint_repeat_loss`).
+
+    The consistency term is as happy with a flat heatmap as with a peaked one. This term asks
+    each ``patch`` x ``patch`` window (stride ``patch / 2``) for a clear maximum: the loss is 1 -
+    the mean over windows of (window max - window mean) of the sigmoid heatmap, over the
+    ``valid`` pixels. Windows with less than ``min_valid`` of their pixels valid are skipped.
+
+    Args:
+        logits: (N, 1, H, W) pre-sigmoid heatmap logits.
+        valid: (N, H, W) bool, pixels that count (inside the crop and the image circle).
+        patch: px, window side (even).
+        min_valid: fraction of a window's pixels that must be valid.
+    Returns:
+        scalar in [0, 1] (0 if no window qualifies).
+    """
+    if logits.ndim != 4 or logits.shape[1] != 1:
+        raise ModelInputError(f'keypoint_peaky_loss: logits {tuple(logits.shape)}, expected '
+                              f'(N, 1, H, W)')
+    if valid.shape != (logits.shape[0], *logits.shape[-2:]):
+        raise ModelInputError(f'keypoint_peaky_loss: valid {tuple(valid.shape)} vs logits '
+                              f'{tuple(logits.shape)}')
+    mask = valid[:, None].to(torch.float32)
+    heat = torch.sigmoid(logits.float()) * mask  # >= 0, so masked pixels never win the max
+    stride = patch // 2
+    cover = F.avg_pool2d(mask, patch, stride)
+    mean = F.avg_pool2d(heat, patch, stride) / cover.clamp(min=1e-6)
+    peak = F.max_pool2d(heat, patch, stride)
+    ok = cover >= min_valid
+    if not ok.any():
+        return logits.sum() * 0.0
+    return 1.0 - (peak - mean)[ok].mean()
 
 
 def distill_descriptor_loss(desc: torch.Tensor, teacher: torch.Tensor,
@@ -595,8 +634,8 @@ class MultiTaskLoss:
                 px and ``flow_valid`` (B, H, W) bool (view a's pixels in view b).
         Returns:
             ``(total, logs)``, logs holding floats ``loss``, ``kp``, ``desc``, ``seg``,
-            ``pos_sim``, ``neg_sim`` (and ``distill_desc``, ``distill_kp``, ``repeat`` when
-            computed).
+            ``pos_sim``, ``neg_sim`` (and ``distill_desc``, ``distill_kp``, ``repeat``,
+            ``peaky`` when computed).
         """
         c = self.conf
         if c['kp_repeat_weight'] > 0 and 'flow' not in batch:
@@ -617,6 +656,10 @@ class MultiTaskLoss:
         if c['kp_repeat_weight'] > 0:
             l_repeat = keypoint_repeat_loss(pred['keypoint_logits'], batch['flow'],
                                             batch['flow_valid'], c['kp_repeat_patch'])
+        l_peaky = None
+        if c['kp_peaky_weight'] > 0:
+            l_peaky = keypoint_peaky_loss(pred['keypoint_logits'], batch['kp_valid'],
+                                          c['kp_repeat_patch'])
         l_desc, stats = descriptor_loss(
             desc[:half], desc[half:], batch['points_a'], batch['points_b'], batch['corr_valid'],
             c['desc_pos_margin'], c['desc_neg_margin'], c['desc_neg_radius'],
@@ -639,6 +682,8 @@ class MultiTaskLoss:
             total = total + c['desc_dsm_weight'] * l_dsm
         if l_repeat is not None:
             total = total + c['kp_repeat_weight'] * l_repeat
+        if l_peaky is not None:
+            total = total + c['kp_peaky_weight'] * l_peaky
         distill = {}
         if 'teacher_desc' in batch and c['distill_desc_weight'] > 0:
             distill['distill_desc'] = distill_descriptor_loss(desc, batch['teacher_desc'],
@@ -659,5 +704,7 @@ class MultiTaskLoss:
             logs['dsm'] = float(l_dsm.detach())
         if l_repeat is not None:
             logs['repeat'] = float(l_repeat.detach())
+        if l_peaky is not None:
+            logs['peaky'] = float(l_peaky.detach())
         logs.update({k: float(v.detach()) for k, v in distill.items()})
         return total, logs

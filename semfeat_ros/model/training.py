@@ -733,6 +733,10 @@ def model_card(model: SemFeatNet, meta: dict[str, Any], conf: dict[str, Any],
         dsm += (f"; + the cross-view heatmap consistency (weight {rw}, 1 - cosine of "
                 f"{conf['loss'].get('kp_repeat_patch')} px windows of one view's heatmap and "
                 "the other's warped onto it)")
+    pw = conf['loss'].get('kp_peaky_weight', 0.0)
+    if pw:
+        dsm += (f"; + the heatmap's peakiness (weight {pw}, 1 - the mean of window max - window "
+                f"mean over {conf['loss'].get('kp_repeat_patch')} px windows)")
     ref = net.get('kp_refine_channels', 0)
     refine = (f' + a full-resolution correction (3 x 3x3 conv, {ref} channels, on the grey '
               'input and those logits)' if ref else '')
