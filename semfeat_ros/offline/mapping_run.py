@@ -315,7 +315,7 @@ def run_mapping(source: BagSource, conf: MapConfig, progress: bool = True,
         record.n_features = len(out)
         record.n_tracks = tr.n_tracks
         cols = tr.columns()
-        record.track_ids = tr.track_ids.copy()
+        record.track_ids = cols['track_id']
         feeder.push(tracks_for_mapper(stamp, cols), record)
         if on_tracks is not None:
             on_tracks(stamp, str(msg.header.frame_id), cols)
@@ -358,7 +358,7 @@ def run_mapping(source: BagSource, conf: MapConfig, progress: bool = True,
                         counts['frames_rejected'] += 1
                         continue
                     record.n_tracks = len(cols.track_ids)
-                    record.track_ids = np.asarray(cols.track_ids)
+                    record.track_ids = cols.track_ids
                     feeder.push(Tracks(stamp, cols.track_ids, cols.bearings, cols.uv,
                                        cols.labels), record)
                 elif use_gt_labels:
