@@ -19,6 +19,7 @@ from semfeat_ros.model.errors import (
 from semfeat_ros.model.extractor import (
     FeatureExtractor,
     class_map,
+    refine_softargmax,
     refine_subpixel,
     simple_nms,
 )
@@ -160,7 +161,7 @@ def test_rescaling_subpixel_borders_and_semantic_filter() -> None:
                  (400, 300, 0.01)]
     image = np.zeros((1536, 1920, 3), np.uint8)
     ext = _extractor(net, detection_threshold=0.05, nms_radius=3, remove_borders=4,
-                     subpixel=False, drop_classes=['sky'])
+                     subpixel='none', drop_classes=['sky'])
     f = ext.extract(image)
     # (101, 51) is suppressed by NMS, (2, 200) by the border, (400, 300) by the threshold
     np.testing.assert_allclose(f.scores, [0.9, 0.8], atol=1e-6)
@@ -171,7 +172,7 @@ def test_rescaling_subpixel_borders_and_semantic_filter() -> None:
     assert len(_extractor(net, drop_classes=['sky']).extract(image)) == 0
     assert len(_extractor(net, drop_classes=['car']).extract(image)) == 2
     net.seg_class = 0
-    assert len(_extractor(net, max_keypoints=1, subpixel=False).extract(image)) == 1
+    assert len(_extractor(net, max_keypoints=1, subpixel='none').extract(image)) == 1
     # with a valid mask covering only the right half, the left peaks disappear
     vm = np.zeros((1536, 1920), bool)
     vm[:, 960:] = True
@@ -205,6 +206,10 @@ def test_input_and_conf_validation() -> None:
         _extractor(net, max_keypoints=0)
     with pytest.raises(ModelConfigError, match='mask_resolution'):
         _extractor(net, mask_resolution='full')
+    with pytest.raises(ModelConfigError, match='subpixel must'):
+        _extractor(net, subpixel=True)
+    with pytest.raises(ModelConfigError, match='subpixel_power'):
+        _extractor(net, subpixel_power=0.0)
 
 
 def test_caller_model_is_not_modified() -> None:
@@ -243,6 +248,27 @@ def test_simple_nms_and_subpixel() -> None:
     ref = refine_subpixel(heat, torch.tensor([[4.0, 4.0], [0.0, 3.0]]))
     torch.testing.assert_close(ref[0], torch.tensor([4.3, 3.8]), atol=1e-5, rtol=0)
     torch.testing.assert_close(ref[1], torch.tensor([0.0, 3.0]))  # border: unchanged
+
+
+def test_softargmax_takes_the_blob_centre_not_its_argmax_pixel() -> None:
+    # a flat-topped blob over columns 4..6 of row 4, peak pixel at its left end
+    heat = torch.zeros(9, 12)
+    heat[4, 4:7] = torch.tensor([1.0, 0.999, 0.998])
+    heat[3, 5] = heat[5, 5] = 0.5
+    ref = refine_softargmax(heat, torch.tensor([[4.0, 4.0]]), radius=3, power=2.0)
+    w = torch.tensor([1.0, 0.999 ** 2, 0.998 ** 2, 0.25, 0.25])
+    u = (w * torch.tensor([4.0, 5.0, 6.0, 5.0, 5.0])).sum() / w.sum()
+    torch.testing.assert_close(ref[0], torch.stack([u, torch.tensor(4.0)]), atol=1e-5, rtol=0)
+    # an isolated peak stays put; a window over the map border only weighs pixels inside it
+    one = torch.zeros(9, 12)
+    one[2, 3] = 0.8
+    one[0, 3] = 0.8
+    ref = refine_softargmax(one, torch.tensor([[3.0, 2.0], [3.0, 0.0]]), radius=1, power=2.0)
+    torch.testing.assert_close(ref[0], torch.tensor([3.0, 2.0]))
+    torch.testing.assert_close(ref[1], torch.tensor([3.0, 0.0]))
+    # radius 0: no refinement
+    torch.testing.assert_close(refine_softargmax(one, torch.tensor([[3.0, 2.0]]), 0, 2.0),
+                               torch.tensor([[3.0, 2.0]]))
 
 
 def test_benchmark_runs_and_labels_random_init(tmp_path: Path) -> None:

@@ -9,8 +9,9 @@ resolution, runs the pure :class:`SemFeatNet` forward and post-processes the out
 2. non-maximum suppression (``nms_radius``), ``detection_threshold``;
 3. class of every candidate (segmentation logits sampled bilinearly at the keypoint, argmax);
    candidates of ``drop_classes`` removed (default: sky and the dynamic classes);
-4. top-``max_keypoints`` by score; optional sub-pixel refinement (quadratic fit of the heatmap
-   in the 3x3 neighbourhood, offset clamped to +-0.5 px);
+4. top-``max_keypoints`` by score; sub-pixel refinement (``subpixel``): the heatmap-weighted
+   centroid of the NMS window around each peak (default), a quadratic fit in its 3x3
+   neighbourhood, or none;
 5. descriptors sampled bilinearly from the stride-8 descriptor map and re-normalised;
 6. keypoints rescaled to input pixels (pixel-centre aware: ``u_in = (u_net + 0.5) * sx - 0.5``).
 
@@ -40,6 +41,9 @@ MAX_IMAGE_SIDE = 16384
 
 BACKENDS = ('auto', 'torch', 'onnxruntime', 'onnxruntime_int8')
 """Choices of the ``backend`` conf key."""
+
+SUBPIXEL = ('softargmax', 'quadratic', 'none')
+"""Choices of the ``subpixel`` conf key."""
 
 
 @dataclass
@@ -126,6 +130,34 @@ def refine_subpixel(heatmap: torch.Tensor, kpts: torch.Tensor) -> torch.Tensor:
     return out
 
 
+def refine_softargmax(heatmap: torch.Tensor, kpts: torch.Tensor, radius: int,
+                      power: float) -> torch.Tensor:
+    """Heatmap-weighted centroid of the (2r+1)^2 window around integer (K, 2) px peaks -> float.
+
+    Weights are ``(h / h_peak) ** power`` (pixels outside the map weigh 0), so the position is
+    the centre of the peak's blob rather than its arg-max pixel, which moves between views when
+    the blob is flat-topped or elongated (ALIKED's soft-argmax refinement works the same way).
+    With ``radius`` = the NMS radius the window holds no value above the peak's.
+    """
+    if radius <= 0 or len(kpts) == 0:
+        return kpts.to(heatmap.dtype).clone()
+    h, w = heatmap.shape
+    r = int(radius)
+    pad = F.pad(heatmap[None, None], (r, r, r, r))[0, 0]  # zeros outside the map
+    inside = F.pad(torch.ones_like(heatmap)[None, None], (r, r, r, r))[0, 0]
+    dy, dx = torch.meshgrid(torch.arange(-r, r + 1), torch.arange(-r, r + 1), indexing='ij')
+    u, v = kpts[:, 0].long(), kpts[:, 1].long()
+    rows, cols = v[:, None, None] + r + dy, u[:, None, None] + r + dx  # (K, 2r+1, 2r+1)
+    patch, ok = pad[rows, cols], inside[rows, cols]
+    peak = heatmap[v, u].clamp(min=1e-12)[:, None, None]
+    wgt = ((patch / peak).clamp(min=0.0, max=1.0) ** power) * ok
+    wgt = wgt / wgt.sum(dim=(1, 2), keepdim=True).clamp(min=1e-12)
+    out = kpts.to(heatmap.dtype).clone()
+    out[:, 0] += (wgt * dx.to(wgt.dtype)).sum(dim=(1, 2))
+    out[:, 1] += (wgt * dy.to(wgt.dtype)).sum(dim=(1, 2))
+    return out
+
+
 class FeatureExtractor:
     """Keypoints, descriptors and semantics of one image (see module docstring)."""
 
@@ -136,7 +168,9 @@ class FeatureExtractor:
         #                               holds ~800 peaks above 0.05 on a 640x512 frame)
         'nms_radius': 3,  # px at network resolution, (2r+1)^2 max-pool window
         'remove_borders': 4,  # px at network resolution, from the image and circle border
-        'subpixel': True,  # quadratic sub-pixel refinement of the keypoint position
+        'subpixel': 'softargmax',  # keypoint refinement: 'softargmax' (heatmap centroid of
+        #                            the NMS window), 'quadratic' (3x3 parabola) or 'none'
+        'subpixel_power': 4.0,  # softargmax: weights (h / h_peak) ** power in the window
         'drop_classes': ['sky', 'car', 'pedestrian'],  # class names (or ids) never returned
         'mask_resolution': 'seg',  # 'seg' (the logit grid, 1/seg_stride of the network input),
         #                            'network' or 'input' size
@@ -233,6 +267,14 @@ class FeatureExtractor:
         if c['backend'] not in BACKENDS:
             raise ModelConfigError(f'backend must be one of {", ".join(BACKENDS)}, got '
                                    f'{c["backend"]!r}')
+        if c['subpixel'] not in SUBPIXEL:
+            raise ModelConfigError(f'subpixel must be one of {", ".join(SUBPIXEL)}, got '
+                                   f'{c["subpixel"]!r}')
+        if isinstance(c['subpixel_power'], bool) or \
+                not isinstance(c['subpixel_power'], (int, float)) or \
+                not 0.0 < float(c['subpixel_power']) <= 16.0:
+            raise ModelConfigError(
+                f'subpixel_power must be a number in (0, 16], got {c["subpixel_power"]!r}')
         if c['mask_resolution'] not in ('seg', 'network', 'input'):
             raise ModelConfigError("mask_resolution must be 'seg', 'network' or 'input', got "
                                    f'{c["mask_resolution"]!r}')
@@ -372,7 +414,9 @@ class FeatureExtractor:
             if c['max_keypoints'] > 0:  # already sorted by score
                 kpts, scores = kpts[:c['max_keypoints']], scores[:c['max_keypoints']]
                 labels = labels[:c['max_keypoints']]
-            if c['subpixel'] and len(kpts):
+            if c['subpixel'] == 'softargmax' and len(kpts):
+                kpts = refine_softargmax(heat, kpts, c['nms_radius'], c['subpixel_power'])
+            elif c['subpixel'] == 'quadratic' and len(kpts):
                 kpts = refine_subpixel(heat, kpts)
             desc = pred['descriptors'].float().contiguous()
             if len(kpts):
