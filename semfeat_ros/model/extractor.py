@@ -141,21 +141,21 @@ def refine_softargmax(heatmap: torch.Tensor, kpts: torch.Tensor, radius: int,
     """
     if radius <= 0 or len(kpts) == 0:
         return kpts.to(heatmap.dtype).clone()
-    h, w = heatmap.shape
-    r = int(radius)
-    pad = F.pad(heatmap[None, None], (r, r, r, r))[0, 0]  # zeros outside the map
-    inside = F.pad(torch.ones_like(heatmap)[None, None], (r, r, r, r))[0, 0]
-    dy, dx = torch.meshgrid(torch.arange(-r, r + 1), torch.arange(-r, r + 1), indexing='ij')
-    u, v = kpts[:, 0].long(), kpts[:, 1].long()
-    rows, cols = v[:, None, None] + r + dy, u[:, None, None] + r + dx  # (K, 2r+1, 2r+1)
-    patch, ok = pad[rows, cols], inside[rows, cols]
-    peak = heatmap[v, u].clamp(min=1e-12)[:, None, None]
-    wgt = ((patch / peak).clamp(min=0.0, max=1.0) ** power) * ok
-    wgt = wgt / wgt.sum(dim=(1, 2), keepdim=True).clamp(min=1e-12)
-    out = kpts.to(heatmap.dtype).clone()
-    out[:, 0] += (wgt * dx.to(wgt.dtype)).sum(dim=(1, 2))
-    out[:, 1] += (wgt * dy.to(wgt.dtype)).sum(dim=(1, 2))
-    return out
+    hm = heatmap.detach().float().contiguous().numpy()
+    h, w = hm.shape
+    d = np.arange(-int(radius), int(radius) + 1)
+    u = kpts[:, 0].numpy().astype(np.int64)
+    v = kpts[:, 1].numpy().astype(np.int64)
+    rows = v[:, None, None] + d[None, :, None]  # (K, 2r+1, 1)
+    cols = u[:, None, None] + d[None, None, :]  # (K, 1, 2r+1)
+    inside = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)  # (K, 2r+1, 2r+1)
+    patch = hm[np.clip(rows, 0, h - 1), np.clip(cols, 0, w - 1)]
+    peak = np.maximum(hm[v, u], 1e-12)[:, None, None]
+    wgt = np.where(inside, np.clip(patch / peak, 0.0, 1.0) ** power, 0.0)
+    total = np.maximum(wgt.sum(axis=(1, 2)), 1e-12)
+    out = np.stack([u + (wgt * d[None, None, :]).sum(axis=(1, 2)) / total,
+                    v + (wgt * d[None, :, None]).sum(axis=(1, 2)) / total], axis=1)
+    return torch.from_numpy(out.astype(np.float32)).to(heatmap.dtype)
 
 
 class FeatureExtractor:
