@@ -443,6 +443,27 @@ def test_dual_softmax_loss_hand_computed() -> None:
         MultiTaskLoss({'desc_dsm_temperature': 0.0})
 
 
+def test_dsm_neg_radius_is_its_own_or_the_contrastive_one() -> None:
+    # points 8 and 16 px apart: a 20 px radius leaves each alone with its partner, 4 px keeps all
+    da, db, pts, valid = _three_cell_maps()
+    pred = {'keypoint_logits': torch.zeros(2, 1, 8, 24),
+            'descriptors': torch.cat([da, db]),
+            'segmentation_logits': torch.zeros(2, 19, 2, 6)}
+    batch = {'kp_target': torch.zeros(2, 8, 24),
+             'kp_valid': torch.ones(2, 8, 24, dtype=torch.bool),
+             'label': torch.full((2, 8, 24), 255), 'points_a': pts, 'points_b': pts,
+             'corr_valid': valid}
+    conf = {'desc_dsm_weight': 1.0, 'desc_dsm_temperature': 0.5, 'desc_neg_radius': 20.0}
+    _, same = MultiTaskLoss(conf)(pred, batch)
+    _, own = MultiTaskLoss({**conf, 'desc_dsm_neg_radius': 4.0})(pred, batch)
+    assert same['dsm'] == pytest.approx(0.0, abs=1e-6)
+    assert own['dsm'] == pytest.approx(
+        float(dual_softmax_loss(da, db, pts, pts, valid, 0.5, 4.0)), abs=1e-6)
+    assert own['dsm'] > 0.1
+    with pytest.raises(ModelConfigError, match='desc_dsm_neg_radius'):
+        MultiTaskLoss({'desc_dsm_neg_radius': -1.0})
+
+
 def _identity_flow(b: int, h: int, w: int) -> torch.Tensor:
     gu, gv = torch.meshgrid(torch.arange(w, dtype=torch.float32),
                             torch.arange(h, dtype=torch.float32), indexing='xy')

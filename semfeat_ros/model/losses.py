@@ -50,6 +50,10 @@ default_loss_conf: dict[str, Any] = {
     'desc_dsm_weight': 0.0,  # weight of L_dsm, the dual-softmax matching NLL of each pair's
     #                          correspondences (see dual_softmax_loss); 0: off (the paper)
     'desc_dsm_temperature': 0.1,  # cosine similarities are divided by this before the softmax
+    'desc_dsm_neg_radius': None,  # px: L_dsm's exclusion radius around the true match (None:
+    #                               desc_neg_radius). Mutual NN fails when a point's partner is
+    #                               not detected and a keypoint a few px away is matched
+    #                               instead; only candidates beyond the radius teach it not to
     'kp_repeat_weight': 0.0,  # weight of L_repeat, the cross-view consistency of the predicted
     #                           heatmaps (see keypoint_repeat_loss); needs data.dense_flow; 0: off
     'kp_repeat_patch': 16,  # px, side of the square windows L_repeat and L_peaky read (stride
@@ -602,6 +606,8 @@ class MultiTaskLoss:
                     raise ModelConfigError(f'loss.{key} must be an even integer >= 2 (px), got '
                                            f'{value!r}')
                 continue
+            if key == 'desc_dsm_neg_radius' and value is None:
+                continue
             if key == 'desc_negatives':
                 if value not in ('hardest', 'all', 'sum'):
                     raise ModelConfigError(
@@ -668,7 +674,9 @@ class MultiTaskLoss:
         if c['desc_dsm_weight'] > 0:
             l_dsm = dual_softmax_loss(
                 desc[:half], desc[half:], batch['points_a'], batch['points_b'],
-                batch['corr_valid'], c['desc_dsm_temperature'], c['desc_neg_radius'])
+                batch['corr_valid'], c['desc_dsm_temperature'],
+                c['desc_neg_radius'] if c['desc_dsm_neg_radius'] is None
+                else c['desc_dsm_neg_radius'])
         l_seg = segmentation_loss(pred['segmentation_logits'], batch['label'],
                                   class_weights=self.class_weights,
                                   stride=c['seg_loss_stride'])

@@ -726,8 +726,10 @@ def model_card(model: SemFeatNet, meta: dict[str, Any], conf: dict[str, Any],
     lw = conf['loss'].get('seg_lovasz_weight', 0.0)
     lovasz = f'; + Lovasz-softmax (weight {lw}) on the same grid' if lw else ''
     dw = conf['loss'].get('desc_dsm_weight', 0.0)
+    dr = conf['loss'].get('desc_dsm_neg_radius')
     dsm = (f'; + the dual-softmax matching NLL of the correspondences (weight {dw}, temperature '
-           f"{conf['loss'].get('desc_dsm_temperature')})" if dw else '')
+           f"{conf['loss'].get('desc_dsm_temperature')}, candidates beyond "
+           f"{conf['loss']['desc_neg_radius'] if dr is None else dr} px)" if dw else '')
     rw = conf['loss'].get('kp_repeat_weight', 0.0)
     if rw:
         dsm += (f"; + the cross-view heatmap consistency (weight {rw}, 1 - cosine of "
