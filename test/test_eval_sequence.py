@@ -316,3 +316,27 @@ def test_semfeat_methods_with_untrained_weights(tmp_path: Path, frames: list[Fra
     seg = res['segmentation']['semfeat']
     assert seg['n_images'] == 2 and 0.0 <= seg['pixel_accuracy'] <= 1.0
     assert (out / 'confusion_semfeat.png').is_file()
+
+
+def test_extractor_set_reaches_the_network_and_bad_keys_fail_in_one_line(
+        tmp_path: Path, frames: list[Frame], capsys: pytest.CaptureFixture[str]) -> None:
+    torch = pytest.importorskip('torch')
+    from semfeat_ros.labels import load_labels
+    from semfeat_ros.model import SemFeatNet, save_weights
+
+    torch.manual_seed(0)
+    w = save_weights(SemFeatNet(), tmp_path / 'w' / 'semfeat.safetensors',
+                     {'class_names': list(load_labels().names), 'input_size': [144, 192]})
+    shard = _save_shard(tmp_path / 's.npz', frames[:2])
+    base = ['sequence', '--shard', str(shard), '--weights', str(w), '--resize-max', '192',
+            '--methods', 'semfeat_nn', '--figures', '0', '--no-progress', '--margin', '2']
+    assert cli(base + ['--extractor-set', 'max_keypoints=7', '--extractor-set',
+                       'detection_threshold=0.0', '--out', str(tmp_path / 'ok')]) == 0
+    s = json.loads((tmp_path / 'ok' / 'results.json').read_text())['methods']['semfeat_nn']
+    assert s['summary']['n_kpts_a'] == 7
+    capsys.readouterr()
+    assert cli(base + ['--extractor-set', 'no_such_key=1', '--out', str(tmp_path / 'bad')]) == 1
+    err = capsys.readouterr().err
+    assert err.count('\n') == 1 and 'no_such_key' in err
+    assert cli(base + ['--extractor-set', 'subpixel', '--out', str(tmp_path / 'bad2')]) == 2
+    assert 'KEY=VALUE' in capsys.readouterr().err

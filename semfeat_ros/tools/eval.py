@@ -18,6 +18,8 @@ import math
 from pathlib import Path
 import sys
 
+import yaml
+
 from semfeat_ros.evaluation.errors import EvalError
 from semfeat_ros.evaluation.methods import method_names
 from semfeat_ros.evaluation.pipeline import DEFAULT_METHODS, EvalConf
@@ -79,6 +81,10 @@ def build_parser() -> argparse.ArgumentParser:
                    '(.safetensors; default: the shipped semfeat_ros/weights/semfeat_glue)')
     g.add_argument('--resize-max', type=int, default=None,
                    help="network input's longer side (px; default: the extractor's 640)")
+    g.add_argument('--extractor-set', metavar='KEY=VALUE', type=_extractor_item,
+                   action='append', default=[],
+                   help="override a network extractor option (YAML value; repeatable), e.g. "
+                   "subpixel=quadratic or nms_radius=2 (config/model.yaml's extractor keys)")
     g.add_argument('--figures', type=int, default=3,
                    help='match figures per method: the first N pairs (default 3)')
     g.add_argument('--seed', type=int, default=0, help='random seed (default 0)')
@@ -173,14 +179,30 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _extractor_item(text: str) -> tuple[str, object]:
+    key, sep, value = text.partition('=')
+    if not sep or not key:
+        raise argparse.ArgumentTypeError(f'expected KEY=VALUE, got {text!r}')
+    try:
+        return key, yaml.safe_load(value)
+    except yaml.YAMLError as exc:
+        raise argparse.ArgumentTypeError(f'{key}: not a YAML value ({error_line(exc)})') from exc
+
+
+def _network_conf(args: argparse.Namespace) -> dict[str, object]:
+    conf: dict[str, object] = dict(args.extractor_set)
+    if args.resize_max is not None:
+        conf['resize_max'] = args.resize_max
+    return conf
+
+
 def _eval_conf(args: argparse.Namespace) -> EvalConf:
     return EvalConf(methods=tuple(args.methods), eps_px=args.eps, ransac_px=args.ransac_px,
                     max_features=args.max_features,
                     weights=None if args.weights is None else str(args.weights),
                     glue_weights=None if args.glue_weights is None else str(args.glue_weights),
                     n_figures=args.figures, seed=args.seed, progress=not args.no_progress,
-                    network_conf={} if args.resize_max is None else
-                    {'resize_max': args.resize_max})
+                    network_conf=_network_conf(args))
 
 
 def run(args: argparse.Namespace) -> dict:
