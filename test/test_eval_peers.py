@@ -226,3 +226,30 @@ def test_semfeat_lg_needs_matcher_weights_of_the_same_network(tmp_path: Path) ->
     runnable, skipped = build_methods(EvalConf(methods=('semfeat_lg',),
                                                glue_weights=str(untrained)))
     assert not runnable and 'token confidences were not trained' in skipped['semfeat_lg']
+
+
+def test_glue_conf_reaches_semfeat_lg_and_a_wrong_option_fails_the_run(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``semfeat-eval --glue-set``: SemfeatGlue's options for semfeat_lg; an unknown key or a
+    value out of range is the user's error (ConfigError, the CLI's one line), not a skip."""
+    from semfeat_ros.evaluation.errors import ConfigError
+    from semfeat_ros.tools.eval import cli
+
+    runnable, skipped = build_methods(EvalConf(
+        methods=('semfeat_lg',), glue_conf={'filter_threshold': 0.5, 'width_confidence': -1}))
+    assert not skipped and runnable[0].matcher.conf['filter_threshold'] == 0.5
+    assert runnable[0].matcher.net.conf.width_confidence == -1
+    default = build_methods(EvalConf(methods=('semfeat_lg',)))[0][0]
+    assert default.matcher.conf['filter_threshold'] == 0.1  # the shipped default, its own copy
+    for bad in ({'no_such_option': 1}, {'filter_threshold': 2.0}, {'depth_confidence': 'x'}):
+        with pytest.raises(ConfigError, match=next(iter(bad))):
+            build_methods(EvalConf(methods=('semfeat_lg',), glue_conf=bad))
+    images = tmp_path / 'images'
+    images.mkdir()
+    cv2.imwrite(str(images / 'a.png'), _photo()[:, :, ::-1])
+    argv = ['transforms', '--images', str(images), '--pairs', '1', '--methods', 'semfeat_lg',
+            '--no-progress', '--out', str(tmp_path / 'out'), '--glue-set', 'no_such_option=1']
+    capsys.readouterr()
+    assert cli(argv) == 1
+    err = capsys.readouterr().err
+    assert err.count('\n') == 1 and 'no_such_option' in err

@@ -540,8 +540,9 @@ _GLUE_CACHE: dict[tuple[str, str], object] = {}
 
 def semfeat_glue(conf: MethodConf) -> object:
     """The learned matcher of the network's features: SemfeatGlue with ``conf.extra
-    ['glue_weights']`` (None: the shipped weights), refused unless it was trained on the
-    features of ``conf.weights`` (the SHA-256 its JSON records); it has
+    ['glue_weights']`` (None: the shipped weights) and the options ``conf.extra['glue_conf']``
+    (SemfeatGlue's ``default_conf`` keys), refused unless it was trained on the features of
+    ``conf.weights`` (the SHA-256 its JSON records); it has
     ``semfeat_ros.model.peers.PeerMatcher``'s ``match``."""
     try:
         from semfeat_ros.model.errors import (
@@ -549,14 +550,19 @@ def semfeat_glue(conf: MethodConf) -> object:
             WeightsFormatError,
             WeightsNotFoundError,
         )
-        from semfeat_ros.model.glue import file_sha256, load_glue, read_glue_meta
+        from semfeat_ros.model.glue import SemfeatGlue, file_sha256, load_glue, read_glue_meta
         from semfeat_ros.model.weights_io import resolve_weights_path
     except ImportError as exc:
         raise MethodUnavailableError(f'semfeat_ros.model.glue is not available ({exc})') from exc
     glue_path = conf.extra.get('glue_weights')
+    glue_conf = dict(conf.extra.get('glue_conf') or {})
+    try:  # a wrong option is the user's error, not a missing matcher: it fails the run
+        SemfeatGlue.check_conf(glue_conf)
+    except ModelConfigError as exc:
+        raise ConfigError(str(exc)) from exc
     try:
         net_sha = file_sha256(resolve_weights_path(conf.weights))
-        key = (str(glue_path), net_sha)
+        key = (str(glue_path), net_sha, repr(sorted(glue_conf.items())))
         if key not in _GLUE_CACHE:
             meta = read_glue_meta(glue_path)
             if meta['semfeat_weights_sha256'] != net_sha:
@@ -565,7 +571,8 @@ def semfeat_glue(conf: MethodConf) -> object:
                     f'features of other network weights than {conf.weights or "the shipped"} '
                     f'(SHA-256 {meta["semfeat_weights_sha256"][:12]}, not {net_sha[:12]}): '
                     f'pass the matching --glue-weights or retrain with semfeat-train-glue')
-            _GLUE_CACHE[key] = load_glue(glue_path, {'num_threads': _peer_threads(conf)})[0]
+            _GLUE_CACHE[key] = load_glue(
+                glue_path, {**glue_conf, 'num_threads': _peer_threads(conf)})[0]
     except (ModelConfigError, WeightsFormatError, WeightsNotFoundError) as exc:
         raise MethodUnavailableError(str(exc)) from exc
     return _GLUE_CACHE[key]

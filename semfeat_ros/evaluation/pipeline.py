@@ -60,6 +60,8 @@ class EvalConf:
     """Overrides of the network's ``FeatureExtractor`` options (e.g. ``resize_max`` px)."""
     glue_weights: str | None = None
     """SemfeatGlue weights of ``semfeat_lg`` (None: the shipped ones)."""
+    glue_conf: dict[str, object] = field(default_factory=dict)
+    """Overrides of SemfeatGlue's options for ``semfeat_lg`` (e.g. ``filter_threshold``)."""
     seq_threshold_from_ransac_px: bool = False
     """``semfeat_seq`` verifies at ``ransac_px`` (``ransac_px / fx`` rad) also on pairs with a
     camera; False: with a camera it uses the matcher's own thresholds."""
@@ -151,7 +153,7 @@ def build_methods(conf: EvalConf) -> tuple[list[Method], dict[str, str]]:
     reason they are skipped."""
     mconf = MethodConf(max_features=conf.max_features, weights=conf.weights,
                       extra={'ransac_px': conf.ransac_px, 'network_conf': conf.network_conf,
-                             'glue_weights': conf.glue_weights,
+                             'glue_weights': conf.glue_weights, 'glue_conf': conf.glue_conf,
                              'seq_threshold_from_ransac_px': conf.seq_threshold_from_ransac_px})
     runnable: list[Method] = []
     skipped: dict[str, str] = {}

@@ -99,19 +99,31 @@ class SemfeatGlue(nn.Module):
 
     def __init__(self, conf: dict[str, Any] | None = None) -> None:
         super().__init__()
-        self.conf = common_conf.merge_conf(self.default_conf, conf, ModelConfigError,
-                                           name='glue', what='option')
-        if not 0.0 <= float(self.conf['filter_threshold']) <= 1.0:
-            raise ModelConfigError(f'glue filter_threshold must be in [0, 1], got '
-                                   f'{self.conf["filter_threshold"]!r}')
+        self.conf = self.check_conf(conf)
         if self.conf['num_threads'] is not None:
-            common_conf.check_int_min(self.conf['num_threads'], 'glue num_threads',
-                                      ModelConfigError, 1)
             torch.set_num_threads(int(self.conf['num_threads']))
         self.net = _lightglue()(None, **{
             **GLUE_ARCH, 'width_confidence': float(self.conf['width_confidence']),
             'depth_confidence': float(self.conf['depth_confidence']),
             'filter_threshold': float(self.conf['filter_threshold'])})
+
+    @classmethod
+    def check_conf(cls, conf: dict[str, Any] | None) -> dict[str, Any]:
+        """``default_conf`` updated with ``conf``; :class:`ModelConfigError` for an unknown key
+        or a value out of range (nothing is built)."""
+        merged = common_conf.merge_conf(cls.default_conf, conf, ModelConfigError, name='glue',
+                                        what='option')
+        for key in ('filter_threshold', 'width_confidence', 'depth_confidence'):
+            value = merged[key]
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ModelConfigError(f'glue {key} must be a number, got {value!r}')
+        if not 0.0 <= float(merged['filter_threshold']) <= 1.0:
+            raise ModelConfigError(f'glue filter_threshold must be in [0, 1], got '
+                                   f'{merged["filter_threshold"]!r}')
+        if merged['num_threads'] is not None:
+            common_conf.check_int_min(merged['num_threads'], 'glue num_threads',
+                                      ModelConfigError, 1)
+        return merged
 
     @property
     def n_layers(self) -> int:

@@ -85,6 +85,11 @@ def build_parser() -> argparse.ArgumentParser:
                    action='append', default=[],
                    help="override a network extractor option (YAML value; repeatable), e.g. "
                    "subpixel=quadratic or nms_radius=2 (config/model.yaml's extractor keys)")
+    g.add_argument('--glue-set', metavar='KEY=VALUE', type=_extractor_item,
+                   action='append', default=[],
+                   help='semfeat_lg: override a SemfeatGlue option (YAML value; repeatable), '
+                   'e.g. filter_threshold=0.05 or width_confidence=-1 (semfeat_ros/model/'
+                   'glue.py default_conf)')
     g.add_argument('--figures', type=int, default=3,
                    help='match figures per method: the first N pairs (default 3)')
     g.add_argument('--seed', type=int, default=0, help='random seed (default 0)')
@@ -202,7 +207,7 @@ def _eval_conf(args: argparse.Namespace) -> EvalConf:
                     weights=None if args.weights is None else str(args.weights),
                     glue_weights=None if args.glue_weights is None else str(args.glue_weights),
                     n_figures=args.figures, seed=args.seed, progress=not args.no_progress,
-                    network_conf=_network_conf(args))
+                    network_conf=_network_conf(args), glue_conf=dict(args.glue_set))
 
 
 def run(args: argparse.Namespace) -> dict:
