@@ -140,6 +140,11 @@ def test_outputs_and_stamps(ros_context, untrained_weights: Path) -> None:
         assert set(np.unique(mask).tolist()) <= set(range(19)) | {255}
         assert mask[0, 0] == 255 and mask[H // 2, W // 2] < 19
         assert h.node.health.counters.rejected == 0
+        # each frame's wait for the one before it in inference, on /diagnostics
+        h.node._publish_diagnostics()
+        extra = h.node.health.extra
+        assert 0.0 <= float(extra['queued_p50_s']) <= float(extra['queued_p95_s']) < 5.0
+        assert extra['mode'] == 'full' and extra['light_frames'] == '0'
     finally:
         h.close()
 

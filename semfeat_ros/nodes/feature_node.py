@@ -6,7 +6,9 @@ subscription callback: the multi-task network (semfeat), or XFeat, SIFT or ORB k
 descriptors labelled by one pass of the network for its segmentation (see
 :mod:`semfeat_ros.offline.frontends`); publishes ``/semfeat/features`` (PointCloud2),
 ``/semfeat/semantic_mask`` (mono8) and, only when subscribed, ``/semfeat/semantic_mask/color``
-(rgb8 overlay). ``/diagnostics`` reports rates, latency and the frames dropped or rejected.
+(rgb8 overlay). ``/diagnostics`` reports rates, latency (stamp to publish, on the node's clock),
+compute time and the time a frame waited for the one before it (``queued_*``, wall clock), and
+the frames dropped or rejected.
 
 When the node falls behind its input (a frame dropped, or the compute time near the period at
 which frames arrive: :class:`~semfeat_ros.runtime.LoadGovernor`) the semfeat front end
@@ -42,7 +44,14 @@ from semfeat_ros.nodes.diagnostics import NodeHealth, spin_node, wall_time
 from semfeat_ros.nodes.params import declare_config, guard_updates, param
 from semfeat_ros.nodes.qos import input_qos
 from semfeat_ros.offline.frontends import make_frontend
-from semfeat_ros.runtime import ChangeGate, LatestWorker, LoadGovernor, RateLimit, cpu_has_bf16
+from semfeat_ros.runtime import (
+    ChangeGate,
+    LatencyStats,
+    LatestWorker,
+    LoadGovernor,
+    RateLimit,
+    cpu_has_bf16,
+)
 
 
 @dataclass
@@ -198,6 +207,7 @@ class FeatureNode(Node):
             self._prepare, self.health.on_error, name='feature-prepare')
         self._worker: LatestWorker = LatestWorker(self._process, self.health.on_error,
                                                   name='feature-inference')
+        self._queued = LatencyStats()  # s (wall clock) from the callback to the inference
 
         io = self.health.io
         self.pub_features = io.publish(PointCloud2, c.features_topic, 10)
@@ -262,11 +272,13 @@ class FeatureNode(Node):
     def _on_image(self, msg: Image | CompressedImage) -> None:
         self.health.on_input()
         self.governor.on_input(time.monotonic_ns())
-        if not self._worker.submit(msg):
+        if not self._worker.submit((msg, wall_time())):
             self.health.counters.dropped += 1
 
-    def _process(self, msg: Image | CompressedImage) -> None:
+    def _process(self, item: tuple[Image | CompressedImage, float]) -> None:
+        msg, received = item
         t0 = wall_time()
+        self._queued.add(t0 - received)  # waited for the frame before it in inference
         with self._camera_lock:
             camera = self._camera
         if camera is None and self.get_parameter('require_camera_info').value:
@@ -327,6 +339,8 @@ class FeatureNode(Node):
         self.health.extra.update(
             mode='full' if current is self.frontend else 'light',
             light_frames=str(g.light_frames), mode_switches=str(g.switches))
+        q50, q95 = self._queued.percentiles()
+        self.health.extra.update(queued_p50_s=f'{q50:.4f}', queued_p95_s=f'{q95:.4f}')
         counts = self._camera_gate.counts
         self.health.extra.update(camera_changes=str(counts.confirmed),
                                  change_outliers_ignored=str(counts.outliers))

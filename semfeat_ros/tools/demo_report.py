@@ -141,7 +141,10 @@ def write_report(bag: Path, out: Path, run: dict[str, Any]) -> dict[str, Any]:
     for node in ('feature_node', 'matcher_node', 'mapping_node'):
         nodes[node] = {k: _diag_value(diag, node, k) for k in (
             'frames_received', 'frames_processed', 'frames_dropped', 'errors_rejected',
-            'latency_p50_s', 'latency_p95_s', 'compute_p50_s', 'compute_p95_s')}
+            'latency_p50_s', 'latency_p95_s', 'compute_p50_s', 'compute_p95_s',
+            'queued_p50_s', 'queued_p95_s', 'light_frames')}
+        nodes[node] = {k: v for k, v in nodes[node].items()
+                       if v is not None or not k.startswith(('queued', 'light'))}
     summary['nodes'] = nodes
     files: dict[str, str] = {}
     ev = None
@@ -205,7 +208,9 @@ def _print(s: dict[str, Any]) -> None:
         print(f'  {node:13s} frames {v["frames_processed"] or 0:.0f}/'
               f'{v["frames_received"] or 0:.0f} processed, {v["frames_dropped"] or 0:.0f} '
               f'dropped, {v["errors_rejected"] or 0:.0f} rejected; latency p50 '
-              f'{ms(v["latency_p50_s"])} p95 {ms(v["latency_p95_s"])}')
+              f'{ms(v["latency_p50_s"])} p95 {ms(v["latency_p95_s"])}' + (
+                  f'; queued p95 {ms(v["queued_p95_s"])}, {v["light_frames"]:.0f} light frames'
+                  if 'queued_p95_s' in v and 'light_frames' in v else ''))
     t = s.get('trajectory', {})
     if 'ate_sim3_rmse_m' in t:
         se3 = t.get('ate_se3_rmse_m')
