@@ -337,7 +337,7 @@ def test_shipped_config_files_match_the_code() -> None:
         {k: v for k, v in stage10['loss'].items() if k != 'desc_dsm_weight'}
     assert {k: v for k, v in stage9.items() if k not in ('init_weights', 'steps', 'loss')} == \
         {k: v for k, v in stage10.items() if k not in ('init_weights', 'steps', 'loss')}
-    stage11 = load_train_conf(read_config(REPO / 'config' / 'distill_stage11.yaml'))  # shipped
+    stage11 = load_train_conf(read_config(REPO / 'config' / 'distill_stage11.yaml'))
     assert stage11['init_weights'] == stage10['init_weights'].replace('train_v14', 'train_v15')
     assert stage11['loss']['kp_repeat_weight'] > 0 == stage10['loss']['kp_repeat_weight']
     assert stage11['data']['dense_flow'] and not stage10['data']['dense_flow']
@@ -349,8 +349,16 @@ def test_shipped_config_files_match_the_code() -> None:
     assert {k: v for k, v in stage10.items() if k not in ('init_weights', 'steps', 'loss',
                                                           'data')} == \
         {k: v for k, v in stage11.items() if k not in ('init_weights', 'steps', 'loss', 'data')}
-    assert meta['training']['init_weights'] == stage11['init_weights']
-    assert meta['training']['train_only'] == stage11['train_only']
+    stage12 = load_train_conf(read_config(REPO / 'config' / 'distill_stage12.yaml'))  # shipped
+    assert stage12['init_weights'] == stage11['init_weights'].replace('train_v15', 'train_v16')
+    assert stage12['loss']['desc_dsm_neg_radius'] < stage11['loss']['desc_neg_radius']
+    assert stage11['loss']['desc_dsm_neg_radius'] is None  # stage 11: the contrastive radius
+    assert {k: v for k, v in stage11['loss'].items() if k != 'desc_dsm_neg_radius'} == \
+        {k: v for k, v in stage12['loss'].items() if k != 'desc_dsm_neg_radius'}
+    assert {k: v for k, v in stage11.items() if k not in ('init_weights', 'steps', 'loss')} == \
+        {k: v for k, v in stage12.items() if k not in ('init_weights', 'steps', 'loss')}
+    assert meta['training']['init_weights'] == stage12['init_weights']
+    assert meta['training']['train_only'] == stage12['train_only']
     assert meta['training']['teacher'] == 'xfeat'
     assert stage5['train_only'] == [] and stage5['warmup_fraction'] == 0.0  # the whole network
     assert stage5['init_weights'] == stage4['init_weights'].replace('train_v8', 'train_v9')
