@@ -210,6 +210,28 @@ def test_input_and_conf_validation() -> None:
         _extractor(net, subpixel=True)
     with pytest.raises(ModelConfigError, match='subpixel_power'):
         _extractor(net, subpixel_power=0.0)
+    with pytest.raises(ModelConfigError, match='kp_refine must be true or false'):
+        _extractor(net, kp_refine='no')
+
+
+def test_kp_refine_off_is_the_cell_logits_alone() -> None:
+    """kp_refine False skips the full-resolution keypoint correction: the heatmap is the
+    sigmoid of the depth-to-space cell logits; the caller's network keeps its layers."""
+    torch.manual_seed(0)
+    net = SemFeatNet({**SMALL, 'kp_refine_channels': 4}).eval()
+    torch.nn.init.normal_(net.kp_refine[-1].weight, std=0.5)  # a correction that matters
+    image = (np.random.default_rng(0).random((64, 96, 3)) * 255).astype(np.uint8)
+    on = _extractor(net, backend='torch', fuse_batchnorm=False)
+    off = _extractor(net, backend='torch', fuse_batchnorm=False, kp_refine=False)
+    assert net.kp_refine is not None and on.model.kp_refine is not None
+    assert off.model.kp_refine is None
+    heat_on = on.forward(image)[0]['heatmap']
+    heat_off = off.forward(image)[0]['heatmap']
+    assert heat_on.shape == heat_off.shape
+    assert not torch.allclose(heat_on, heat_off, atol=1e-3)
+    net.kp_refine = None  # the same network without the correction gives the same heatmap
+    plain = _extractor(net, backend='torch', fuse_batchnorm=False).forward(image)[0]['heatmap']
+    torch.testing.assert_close(heat_off, plain)
 
 
 def test_caller_model_is_not_modified() -> None:

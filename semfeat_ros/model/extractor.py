@@ -171,6 +171,10 @@ class FeatureExtractor:
         'subpixel': 'softargmax',  # keypoint refinement: 'softargmax' (heatmap centroid of
         #                            the NMS window), 'quadratic' (3x3 parabola) or 'none'
         'subpixel_power': 4.0,  # softargmax: weights (h / h_peak) ** power in the window
+        'kp_refine': True,  # run the network's full-resolution keypoint correction (weights
+        #                     with kp_refine_channels > 0); False: the heatmap of the stride-8
+        #                     cell logits alone, cheaper and far fewer, worse keypoints
+        #                     (docs/RESULTS.md, "Live at 1x")
         'drop_classes': ['sky', 'car', 'pedestrian'],  # class names (or ids) never returned
         'mask_resolution': 'seg',  # 'seg' (the logit grid, 1/seg_stride of the network input),
         #                            'network' or 'input' size
@@ -222,6 +226,8 @@ class FeatureExtractor:
         self.drop_ids = self._resolve_classes(conf['drop_classes'])
         torch.set_num_threads(int(conf['num_threads']))
         model = copy.deepcopy(model).eval()  # never alter a caller's module (training uses it)
+        if not conf['kp_refine']:
+            model.kp_refine = None  # forward then skips the correction (SemFeatNet.forward)
         if conf['fuse_batchnorm']:
             model = fuse_batchnorm(model)
         if conf['channels_last']:
@@ -275,6 +281,9 @@ class FeatureExtractor:
                 not 0.0 < float(c['subpixel_power']) <= 16.0:
             raise ModelConfigError(
                 f'subpixel_power must be a number in (0, 16], got {c["subpixel_power"]!r}')
+        for key in ('kp_refine', 'channels_last', 'bf16', 'fuse_batchnorm', 'ort_spin'):
+            if not isinstance(c[key], bool):
+                raise ModelConfigError(f'{key} must be true or false, got {c[key]!r}')
         if c['mask_resolution'] not in ('seg', 'network', 'input'):
             raise ModelConfigError("mask_resolution must be 'seg', 'network' or 'input', got "
                                    f'{c["mask_resolution"]!r}')
