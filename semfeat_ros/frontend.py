@@ -73,7 +73,6 @@ class FrontendConfig:
     resize_max: int = 640  # px, longer side of the network input
     bf16: bool = False  # bfloat16 autocast of the network (FeatureExtractor conf 'bf16')
     backend: str = 'auto'  # network runtime: 'auto', 'onnxruntime' or 'torch' (FeatureExtractor)
-    kp_refine: bool = True  # the network's full-resolution keypoint correction (FeatureExtractor)
     size_tolerance: float = 0.01  # relative aspect mismatch tolerated between image and camera
 
 
@@ -105,7 +104,7 @@ class SemanticFrontend:
             'nms_radius': conf.nms_radius, 'remove_borders': conf.border,
             'drop_classes': list(conf.drop_classes), 'num_threads': conf.num_threads,
             'mask_resolution': conf.mask_resolution, 'resize_max': conf.resize_max,
-            'bf16': conf.bf16, 'backend': conf.backend, 'kp_refine': conf.kp_refine})
+            'bf16': conf.bf16, 'backend': conf.backend})
         self.last_count = 0
         self._scaled: dict[tuple, CameraModel] = {}
 

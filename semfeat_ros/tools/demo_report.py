@@ -141,10 +141,10 @@ def write_report(bag: Path, out: Path, run: dict[str, Any]) -> dict[str, Any]:
     for node in ('feature_node', 'matcher_node', 'mapping_node'):
         nodes[node] = {k: _diag_value(diag, node, k) for k in (
             'frames_received', 'frames_processed', 'frames_dropped', 'errors_rejected',
-            'latency_p50_s', 'latency_p95_s', 'compute_p50_s', 'compute_p95_s',
-            'queued_p50_s', 'queued_p95_s', 'light_frames')}
-        nodes[node] = {k: v for k, v in nodes[node].items()
-                       if v is not None or not k.startswith(('queued', 'light'))}
+            'latency_p50_s', 'latency_p95_s', 'compute_p50_s', 'compute_p95_s')}
+        for k in ('queued_p50_s', 'queued_p95_s', 'light_frames'):  # feature_node's own
+            if (v := _diag_value(diag, node, k)) is not None:
+                nodes[node][k] = v
     summary['nodes'] = nodes
     files: dict[str, str] = {}
     ev = None

@@ -81,11 +81,11 @@ def build_parser() -> argparse.ArgumentParser:
                    '(.safetensors; default: the shipped semfeat_ros/weights/semfeat_glue)')
     g.add_argument('--resize-max', type=int, default=None,
                    help="network input's longer side (px; default: the extractor's 640)")
-    g.add_argument('--extractor-set', metavar='KEY=VALUE', type=_extractor_item,
+    g.add_argument('--extractor-set', metavar='KEY=VALUE', type=_key_value_item,
                    action='append', default=[],
                    help="override a network extractor option (YAML value; repeatable), e.g. "
                    "subpixel=quadratic or nms_radius=2 (config/model.yaml's extractor keys)")
-    g.add_argument('--glue-set', metavar='KEY=VALUE', type=_extractor_item,
+    g.add_argument('--glue-set', metavar='KEY=VALUE', type=_key_value_item,
                    action='append', default=[],
                    help='semfeat_lg: override a SemfeatGlue option (YAML value; repeatable), '
                    'e.g. filter_threshold=0.05 or width_confidence=-1 (semfeat_ros/model/'
@@ -184,7 +184,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _extractor_item(text: str) -> tuple[str, object]:
+def _key_value_item(text: str) -> tuple[str, object]:
     key, sep, value = text.partition('=')
     if not sep or not key:
         raise argparse.ArgumentTypeError(f'expected KEY=VALUE, got {text!r}')
