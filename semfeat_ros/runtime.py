@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 import threading
@@ -153,36 +153,62 @@ class LatestWorker(Generic[T]):
 
 
 class LoadGovernor:
-    """Chooses a node's processing mode, full or light, from its compute time against the input
-    frame period, so that a node falling behind switches to its declared lighter mode before
-    frames are dropped at random.
+    """Chooses a node's processing level from its compute time against the input frame period,
+    so that a node falling behind steps down to its declared lighter levels before frames are
+    dropped at random: level 0 is the full mode, each level after it lighter.
 
-    The frame period is the median interval between the last ``window`` + 1 arrivals of input
-    frames (wall clock: a bag replayed slower than recorded leaves more time per frame). The light
-    mode starts when a frame was dropped while the last one ran, or when the median compute
-    time of the last ``window`` full-mode frames exceeds ``enter_ratio`` of the period; it
-    ends after ``leave_frames`` light frames in a row without a drop, each computed within
-    ``leave_ratio`` of the period (room for the full mode). Until the period is known
-    (``window`` + 1 arrivals) frames count for nothing and the mode stays full. The subscription
-    callback calls :meth:`on_input`, the worker thread :meth:`on_done`.
+    ``costs`` are the levels' relative compute, full mode first (e.g. the network input's pixel
+    count against the full mode's: ``[1.0, 0.64, 0.49]`` for 640, 512 and 448 px; ``[1.0]``: no
+    light level, the level stays 0). The frame
+    period is the median interval between the last ``window`` + 1 arrivals of input frames (wall
+    clock: a bag replayed slower than recorded leaves more time per frame). The node steps one
+    level down when a frame was dropped while the last one ran, or when the median compute time
+    of the last ``window`` frames at the current level exceeds ``enter_ratio`` of the period; it
+    steps one level up after ``leave_frames`` frames in a row without a drop whose compute time,
+    scaled by the level above's relative cost, is within ``leave_ratio`` of the period (room for
+    the level above). It starts at ``start_level``. Until the period is known (``window`` + 1
+    arrivals) compute times count for nothing and only a drop changes the level. The
+    subscription callback calls :meth:`on_input`, the worker thread :meth:`on_done`.
     """
 
-    def __init__(self, enter_ratio: float = 0.9, leave_ratio: float = 0.5,
-                 leave_frames: int = 30, window: int = 8) -> None:
+    def __init__(self, costs: Sequence[float] = (1.0, 0.64), enter_ratio: float = 0.9,
+                 leave_ratio: float = 0.75, leave_frames: int = 30, window: int = 8,
+                 start_level: int = 0) -> None:
         if not 0.0 < leave_ratio < enter_ratio:
             raise ValueError(f'need 0 < leave_ratio < enter_ratio, got {leave_ratio}, '
                              f'{enter_ratio}')
-        if leave_frames < 1 or window < 2:
-            raise ValueError(f'leave_frames >= 1 and window >= 2, got {leave_frames}, {window}')
+        costs = [float(c) for c in costs]
+        if not costs or costs[-1] <= 0 or any(a <= b for a, b in zip(costs, costs[1:])):
+            raise ValueError(f'costs: the full mode first, each level cheaper than the one '
+                             f'before and > 0, got {costs}')
+        if leave_frames < 1 or window < 2 or not 0 <= start_level < len(costs):
+            raise ValueError(f'leave_frames >= 1, window >= 2 and 0 <= start_level < '
+                             f'{len(costs)}, got {leave_frames}, {window}, {start_level}')
         self.enter_ratio, self.leave_ratio = enter_ratio, leave_ratio
         self.leave_frames = leave_frames
+        self.costs = costs
         self._lock = threading.Lock()
         self._arrivals: deque[int] = deque(maxlen=window + 1)
-        self._full_s: deque[float] = deque(maxlen=window)
-        self._calm = 0  # light frames in a row with room for the full mode
-        self.light = False
-        self.light_frames = 0  # frames processed in the light mode
-        self.switches = 0  # changes of mode
+        self._level_s: deque[float] = deque(maxlen=window)  # compute at the current level
+        self._calm = 0  # frames in a row with room for the level above
+        self.level = start_level
+        self.level_frames = [0] * len(costs)  # frames processed at each level
+        self.switches = 0  # changes of level
+
+    @property
+    def levels(self) -> int:
+        """Number of light levels (below the full mode)."""
+        return len(self.costs) - 1
+
+    @property
+    def light_frames(self) -> int:
+        """Frames processed below the full mode."""
+        return sum(self.level_frames[1:])
+
+    @property
+    def light(self) -> bool:
+        """True below the full mode."""
+        return self.level > 0
 
     @property
     def period_s(self) -> float | None:
@@ -202,29 +228,35 @@ class LoadGovernor:
             self._arrivals.append(int(t_ns))
 
     def on_done(self, compute_s: float, dropped: bool) -> None:
-        """The frame took ``compute_s`` (s) in the current mode; ``dropped``: a newer frame
+        """The frame took ``compute_s`` (s) at the current level; ``dropped``: a newer frame
         replaced a waiting one meanwhile."""
+        level = self.level
+        self.level_frames[level] += 1
         period = self.period_s
-        if period is None:
-            return  # warm-up frames say nothing about the load
-        if self.light:
-            self.light_frames += 1
-            calm = not dropped and compute_s <= self.leave_ratio * period
+        if period is None:  # warm-up: compute times say nothing yet, a drop does
+            if dropped and level < self.levels:
+                self._switch(level + 1)
+            return
+        if level > 0:
+            above_s = compute_s * self.costs[level - 1] / self.costs[level]
+            calm = not dropped and above_s <= self.leave_ratio * period
             self._calm = self._calm + 1 if calm else 0
             if self._calm >= self.leave_frames:
-                self._switch(False)
-            return
-        self._full_s.append(compute_s)
-        slow = (len(self._full_s) == self._full_s.maxlen
-                and float(np.median(self._full_s)) > self.enter_ratio * period)
+                self._switch(level - 1)
+                return
+        if level == self.levels:
+            return  # the lightest level: nothing lighter to step down to
+        self._level_s.append(compute_s)
+        slow = (len(self._level_s) == self._level_s.maxlen
+                and float(np.median(self._level_s)) > self.enter_ratio * period)
         if dropped or slow:
-            self._switch(True)
+            self._switch(level + 1)
 
-    def _switch(self, light: bool) -> None:
-        self.light = light
+    def _switch(self, level: int) -> None:
+        self.level = level
         self.switches += 1
         self._calm = 0
-        self._full_s.clear()
+        self._level_s.clear()
 
 
 class RateLimit:

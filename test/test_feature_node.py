@@ -144,7 +144,11 @@ def test_outputs_and_stamps(ros_context, untrained_weights: Path) -> None:
         h.node._publish_diagnostics()
         extra = h.node.health.extra
         assert 0.0 <= float(extra['queued_p50_s']) <= float(extra['queued_p95_s']) < 5.0
-        assert extra['mode'] == 'full' and extra['light_frames'] == '0'
+        # the node starts at its first light level (no drop, so no step down before the period
+        # is known); every frame counted at 512 px
+        assert extra['mode'] == 'light' and extra['light_level'] == '1'
+        assert extra['light_frames'] == extra['light_frames_512px'] == str(len(stamps))
+        assert extra['light_frames_448px'] == '0'
     finally:
         h.close()
 
@@ -221,8 +225,20 @@ def test_network_runtime_and_warmup_parameters(ros_context, untrained_weights: P
         assert node.frontend.extractor.backend == 'onnxruntime'
         assert (512, 640) in node.frontend.extractor._ort._sessions  # built before any frame
         assert 'on onnxruntime' in node.frontend.describe()
+        # the light levels, readied too: 512 then 448 px
+        assert [fe.extractor.conf['resize_max'] for fe in node.light_frontends] == [512, 448]
+        assert node.governor.levels == 2
+        assert all(fe.extractor._ort._sessions for fe in node.light_frontends)
     finally:
         node.destroy_node()
+    # sizes not below the level before them are skipped; none below the full mode: no light mode
+    for sizes, kept in (([700, 512, 600, 448], [512, 448]), ([640, 800], [])):
+        node = FeatureNode(parameter_overrides=[*base, Parameter('light_resize_max', value=sizes),
+                                                Parameter('warmup_size', value=[0, 0])])
+        try:
+            assert [fe.extractor.conf['resize_max'] for fe in node.light_frontends] == kept
+        finally:
+            node.destroy_node()
     node = FeatureNode(parameter_overrides=[*base, Parameter('backend', value='torch'),
                                             Parameter('warmup_size', value=[0, 0])])
     try:

@@ -148,7 +148,7 @@ def _feed(g: LoadGovernor, stamps: range, compute_s: float, dropped: bool = Fals
 
 def test_load_governor_enters_light_mode_when_slow_and_leaves_with_room() -> None:
     period = 100_000_000  # 10 Hz, ns
-    g = LoadGovernor(enter_ratio=0.9, leave_ratio=0.5, leave_frames=5, window=4)
+    g = LoadGovernor(enter_ratio=0.9, leave_ratio=0.75, leave_frames=5, window=4)  # 1, 0.64
     _feed(g, range(0, 4 * period, period), 0.2)  # slow warm-up frames count for nothing
     assert not g.light and g.period_s is None  # the period is not known yet
     _feed(g, range(4 * period, 8 * period, period), 0.08)
@@ -158,11 +158,52 @@ def test_load_governor_enters_light_mode_when_slow_and_leaves_with_room() -> Non
     _feed(g, range(10 * period, 12 * period, period), 0.095)
     assert g.light and g.switches == 1  # ... now above 90 ms: light mode
     _feed(g, range(12 * period, 16 * period, period), 0.045)
-    assert g.light  # four calm frames of the five needed
+    assert g.light  # four calm frames of the five needed (45 ms x 1 / 0.64 <= 75 ms)
     _feed(g, range(16 * period, 17 * period, period), 0.06)
-    assert g.light  # 60 ms leaves no room for the full mode: the count restarts
+    assert g.light  # 60 ms x 1 / 0.64 leaves no room for the full mode: the count restarts
     _feed(g, range(17 * period, 22 * period, period), 0.045)
     assert not g.light and g.switches == 2 and g.light_frames == 11
+
+
+def test_load_governor_steps_through_its_levels_one_at_a_time() -> None:
+    period = 100_000_000  # 10 Hz, ns
+    g = LoadGovernor([1.0, 0.64, 0.49], leave_frames=3, window=2)
+    _feed(g, range(0, 2 * period, period), 0.2)  # warm-up: the period is not known yet
+    assert g.level == 0 and g.period_s is None
+    _feed(g, range(2 * period, 4 * period, period), 0.12)
+    assert g.level == 1 and g.light and g.switches == 1  # slow at full: first light level
+    _feed(g, range(4 * period, 5 * period, period), 0.095)
+    assert g.level == 1  # one slow frame at the new level: its window is not full yet
+    _feed(g, range(5 * period, 6 * period, period), 0.095)
+    assert g.level == 2 and g.switches == 2  # still slow: the lightest level
+    _feed(g, range(6 * period, 8 * period, period), 0.2, dropped=True)
+    assert g.level == 2  # nothing lighter to step down to
+    _feed(g, range(8 * period, 11 * period, period), 0.04)
+    assert g.level == 1 and g.switches == 3  # room for the level above: one step up
+    _feed(g, range(11 * period, 12 * period, period), 0.04, dropped=True)
+    assert g.level == 2  # a drop at level 1 steps down again
+    _feed(g, range(12 * period, 18 * period, period), 0.04)
+    assert g.level == 0 and not g.light and g.light_frames == 14
+    assert g.level_frames == [4, 6, 8]  # frames at each level, the warm-up at full included
+    for bad in ([], [1.0, 1.2], [1.0, 0.0], [1.0, 0.5, 0.5]):
+        with pytest.raises(ValueError, match='costs'):
+            LoadGovernor(bad)
+    with pytest.raises(ValueError, match='start_level'):
+        LoadGovernor([1.0, 0.64], start_level=2)
+
+
+def test_load_governor_steps_down_on_a_warm_up_drop_and_may_start_light() -> None:
+    period = 100_000_000
+    g = LoadGovernor([1.0, 0.64, 0.49], start_level=1)
+    assert g.level == 1 and g.light
+    _feed(g, range(0, 2 * period, period), 0.3)  # slow, but the period is not known yet
+    assert g.level == 1
+    _feed(g, range(2 * period, 3 * period, period), 0.3, dropped=True)
+    assert g.level == 2 and g.period_s is None  # a drop needs no period
+    assert LoadGovernor([1.0]).levels == 0  # no light level: the level stays 0
+    g = LoadGovernor([1.0], window=2)
+    _feed(g, range(0, 5 * period, period), 0.3, dropped=True)
+    assert g.level == 0 and g.level_frames == [5]
 
 
 def test_load_governor_switches_on_a_drop_and_restarts_on_a_bag_loop() -> None:

@@ -12,9 +12,11 @@ the frames dropped or rejected.
 
 When the node falls behind its input (a frame dropped, or the compute time near the period at
 which frames arrive: :class:`~semfeat_ros.runtime.LoadGovernor`) the semfeat front end
-switches to its light mode, the network input at ``light_resize_max`` px (about 0.64x the
-compute at 512 against 640), and back once there is room again; ``/diagnostics`` reports the
-mode, the light frames and the switches.
+steps down to its light levels, the network input at each size of ``light_resize_max`` in turn
+(512 then 448 px: 0.64x and 0.49x the pixels of 640), and back up once there is room
+again. It starts at the first light level: its first frames run while the other nodes start
+too. ``/diagnostics`` reports the mode, the level, the frames at each light level and the
+switches.
 
 A CameraInfo of another camera (size or intrinsics) replaces the current one only when
 ``change_confirm_messages`` consecutive messages carry it, at most once per
@@ -116,10 +118,11 @@ class FeatureNodeConfig:
                                     'Classes whose keypoints are discarded', read_only=True)
     resize_max: int = param(640, 'Longer side of the network input (px); frames are resized',
                             range=(64, 4096), read_only=True)
-    light_resize_max: int = param(512, 'Longer side of the network input (px) in the light '
-                                  'mode the node takes while it falls behind its input '
-                                  '(semfeat front end); 0 = no light mode',
-                                  range=(0, 4096), read_only=True)
+    light_resize_max: list[int] = param(
+        [512, 448], 'Longer sides of the network input (px) at the light levels the node steps '
+        'down to while it falls behind its input, lightest last (semfeat front end; a size not '
+        'below the full mode or the level before it is skipped, so [640] = no light mode)',
+        read_only=True)
     mask_resolution: str = param('input', 'Size of the published mask: input image, network '
                                  'input, or the segmentation logit grid (network input / 2)',
                                  choices=('input', 'network', 'seg'), read_only=True)
@@ -151,6 +154,18 @@ class FeatureNodeConfig:
                                    range=(0.0, 1.0), read_only=True)
     diagnostics_period_s: float = param(1.0, 'Period of /diagnostics (s)', range=(0.1, 60.0),
                                         read_only=True)
+
+
+def light_sizes(c: FeatureNodeConfig) -> list[int]:
+    """The network input sizes (px) of the light levels: ``light_resize_max`` below the full
+    mode's ``resize_max``, each below the one before (others are skipped)."""
+    sizes: list[int] = []
+    for size in (int(v) for v in c.light_resize_max):
+        if size < 16:
+            raise ValueError(f'light_resize_max sizes must be >= 16 px, got {size}')
+        if size < (sizes[-1] if sizes else c.resize_max):
+            sizes.append(size)
+    return sizes
 
 
 def frontend_config(c: FeatureNodeConfig, weights: str | None = None) -> FrontendConfig:
@@ -190,12 +205,15 @@ class FeatureNode(Node):
         if any(warmup) and (len(warmup) != 2 or min(warmup) < 16):
             raise ValueError(f'warmup_size must be [width, height] >= 16 px or [0, 0] (none), '
                              f'got {warmup}')
-        # the light mode: the same network at a smaller input, readied beside the full one
-        self.light_frontend = None
-        if c.frontend == 'semfeat' and 0 < c.light_resize_max < c.resize_max:
-            self.light_frontend = make_frontend(
-                'semfeat', replace(frontend_config(c), resize_max=c.light_resize_max))
-        self.governor = LoadGovernor()
+        # the light levels: the same network at smaller inputs, readied beside the full one
+        sizes = light_sizes(c) if c.frontend == 'semfeat' else []
+        self.light_frontends = [
+            make_frontend('semfeat', replace(frontend_config(c), resize_max=size))
+            for size in sizes]
+        # relative costs: the input's pixels against the full mode's; the first frames run while
+        # the other nodes start too, so the node starts at its first light level
+        self.governor = LoadGovernor([1.0] + [(s / c.resize_max) ** 2 for s in sizes],
+                                     start_level=min(1, len(sizes)))
         if any(warmup):
             for fe in self._frontends():
                 fe.prepare(*warmup)
@@ -320,25 +338,28 @@ class FeatureNode(Node):
             self.pub_color.publish(numpy_to_image(overlay, 'rgb8', stamp_ns=stamp_ns,
                                                   frame_id=frame_id, msg_cls=Image))
         self.health.on_output(stamp_ns, wall_time() - t0)
-        if self.light_frontend is not None:
+        if self.light_frontends:
             self.governor.on_done(wall_time() - t0, self._worker.dropped > dropped)
 
     def _current_frontend(self) -> Any:
-        """The light mode's front end while the governor asks for it, else the full one."""
-        return self.light_frontend if self.governor.light and self.light_frontend else \
+        """The front end of the governor's level: the full one at level 0."""
+        level = self.governor.level
+        return self.light_frontends[level - 1] if level and self.light_frontends else \
             self.frontend
 
     def _frontends(self) -> list[Any]:
-        """The front ends this node runs: the full one and the light mode's, if any."""
-        return [fe for fe in (self.frontend, self.light_frontend) if fe is not None]
+        """The front ends this node runs: the full one and those of the light levels."""
+        return [fe for fe in (self.frontend, *self.light_frontends) if fe is not None]
 
     def _publish_diagnostics(self) -> None:
         self.health.counters.dropped = self._worker.dropped
         current, g = self._current_frontend(), self.governor
         self.health.extra['keypoints_last'] = str(current.last_count)
         self.health.extra.update(
-            mode='full' if current is self.frontend else 'light',
+            mode='full' if current is self.frontend else 'light', light_level=str(g.level),
             light_frames=str(g.light_frames), mode_switches=str(g.switches))
+        for fe, n in zip(self.light_frontends, g.level_frames[1:]):
+            self.health.extra[f'light_frames_{fe.extractor.conf["resize_max"]}px'] = str(n)
         q50, q95 = self._queued.percentiles()
         self.health.extra.update(queued_p50_s=f'{q50:.4f}', queued_p95_s=f'{q95:.4f}')
         counts = self._camera_gate.counts
@@ -350,7 +371,7 @@ class FeatureNode(Node):
         """Stop the worker threads and free the front end (the managed variant's cleanup)."""
         self._preparer.stop()
         self._worker.stop()
-        self.frontend = self.light_frontend = None
+        self.frontend, self.light_frontends = None, []
 
     def destroy_node(self) -> None:
         if getattr(self, 'frontend', None) is not None:

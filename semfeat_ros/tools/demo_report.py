@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+import re
 from typing import Any
 
 import cv2
@@ -142,8 +143,10 @@ def write_report(bag: Path, out: Path, run: dict[str, Any]) -> dict[str, Any]:
         nodes[node] = {k: _diag_value(diag, node, k) for k in (
             'frames_received', 'frames_processed', 'frames_dropped', 'errors_rejected',
             'latency_p50_s', 'latency_p95_s', 'compute_p50_s', 'compute_p95_s')}
-        for k in ('queued_p50_s', 'queued_p95_s', 'light_frames'):  # feature_node's own
-            if (v := _diag_value(diag, node, k)) is not None:
+        per_level = sorted((k for k in diag.get(node, {}) if re.fullmatch(
+            r'light_frames_\d+px', k)), key=lambda k: -int(k[13:-2]))  # largest input first
+        for k in ('queued_p50_s', 'queued_p95_s', 'light_frames', *per_level):
+            if (v := _diag_value(diag, node, k)) is not None:  # feature_node's own
                 nodes[node][k] = v
     summary['nodes'] = nodes
     files: dict[str, str] = {}
@@ -197,6 +200,12 @@ def write_report(bag: Path, out: Path, run: dict[str, Any]) -> dict[str, Any]:
     return summary
 
 
+def _levels(v: dict[str, Any]) -> str:
+    """`` (512 px: 20, 448 px: 168)``: feature_node's frames at each light level."""
+    levels = [f'{k[13:-2]} px: {n:.0f}' for k, n in v.items() if k.startswith('light_frames_')]
+    return f' ({", ".join(levels)})' if levels else ''
+
+
 def _print(s: dict[str, Any]) -> None:
     def ms(x: float | None) -> str:
         return 'n/a' if x is None or not np.isfinite(x) else f'{1000 * x:.0f} ms'
@@ -210,7 +219,7 @@ def _print(s: dict[str, Any]) -> None:
               f'dropped, {v["errors_rejected"] or 0:.0f} rejected; latency p50 '
               f'{ms(v["latency_p50_s"])} p95 {ms(v["latency_p95_s"])}' + (
                   f'; queued p95 {ms(v["queued_p95_s"])}, {v["light_frames"]:.0f} light frames'
-                  if 'queued_p95_s' in v and 'light_frames' in v else ''))
+                  + _levels(v) if 'queued_p95_s' in v and 'light_frames' in v else ''))
     t = s.get('trajectory', {})
     if 'ate_sim3_rmse_m' in t:
         se3 = t.get('ate_se3_rmse_m')
