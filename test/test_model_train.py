@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import csv
+import json
 from pathlib import Path
 
 from conftest import REPO
@@ -358,6 +359,19 @@ def test_shipped_config_files_match_the_code() -> None:
     assert {k: v for k, v in stage11.items() if k not in ('init_weights', 'steps', 'loss')} == \
         {k: v for k, v in stage12.items() if k not in ('init_weights', 'steps', 'loss')}
     assert meta['training']['init_weights'] == stage12['init_weights']
+    # probes over stage 12: three quarters of each batch on the photographs, then once more
+    photo = load_train_conf(read_config(REPO / 'config' / 'distill_photo075.yaml'))
+    photo2 = load_train_conf(read_config(REPO / 'config' / 'distill_photo075_2.yaml'))
+    assert photo['data']['pair_mix']['photo'] == 0.75 > stage12['data']['pair_mix']['photo']
+    assert {k: v for k, v in stage12['data'].items() if k != 'pair_mix'} == \
+        {k: v for k, v in photo['data'].items() if k != 'pair_mix'}
+    assert {k: v for k, v in stage12.items() if k not in ('init_weights', 'data')} == \
+        {k: v for k, v in photo.items() if k not in ('init_weights', 'data')}
+    assert {k: v for k, v in photo.items() if k != 'init_weights'} == \
+        {k: v for k, v in photo2.items() if k != 'init_weights'}
+    staged = json.loads((REPO / 'stages' / 'photo075' / 'semfeat.json').read_text())
+    assert staged['training']['init_weights'] == photo['init_weights']
+    assert photo2['init_weights'] == 'stages/photo075/semfeat.safetensors'
     assert meta['training']['train_only'] == stage12['train_only']
     assert meta['training']['teacher'] == 'xfeat'
     assert stage5['train_only'] == [] and stage5['warmup_fraction'] == 0.0  # the whole network
