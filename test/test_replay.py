@@ -25,10 +25,10 @@ from bagcraft import craft  # noqa: E402
 BAG = REPO / 'bags' / 'garage_ramp_seed0'
 pytestmark = pytest.mark.slow
 
-# The quality run replays slower than real time: on 2 cores, five processes (three nodes, player,
-# recorder) and the fp32 network cannot hold the bag's 10 Hz, and at 1x the number of frames the
-# nodes drop decides how good the map is. At 0.3x every frame is processed and the live result
-# matches semfeat-map's; at 0.5x a slow 2-core machine still drops a few (17 of 198 measured).
+# The quality run replays slower than real time and in the full mode only, so that every frame
+# is processed by the full network and the live result can be compared with semfeat-map's and
+# semfeat-features' frame by frame; at 1x feature_node runs its light levels on 2 cores and how
+# many frames it keeps depends on the machine (test_recorded_rate_steps_down_and_keeps_the_map).
 # Dropping under overload is tested at 2x below.
 QUALITY_RATE = 0.3
 # Bounds against what the live pipeline measured at 0.5x on the shipped weights (RESULTS.md):
@@ -223,6 +223,36 @@ def test_offline_features_agree_with_live(live: dict, tmp_path: Path) -> None:
     dist, same_label = np.concatenate(dist), np.concatenate(same_label)
     assert np.mean(dist < FEATURE_AGREEMENT_PX) > 0.99, np.percentile(dist, [50, 99, 100])
     assert same_label[dist < FEATURE_AGREEMENT_PX].mean() > 0.99
+
+
+@pytest.mark.parametrize('domain', [93])
+def test_recorded_rate_steps_down_and_keeps_the_map(tmp_path: Path, domain: int) -> None:
+    """The bundled bag at 1x with the shipped parameters: feature_node runs its light levels
+    when it falls behind, and what a subscriber gets live keeps the quality run's bounds (both
+    floors, live odometry on the ramp, altitude steps, the keyframe path). The frame counts
+    depend on the machine's speed (five `make demo` runs here: 195-197 of 198, README); this
+    asserts the accounting, not the rate."""
+    run = run_pipeline(DemoConfig(bag=BAG, out=tmp_path / 'out', domain_id=domain, rate=1.0))
+    assert all(code == 0 for code in run['exit_codes'].values())
+    f = run['diagnostics']['feature_node']
+    assert int(f['errors_rejected']) == 0 and int(f['processing_errors']) == 0, f
+    received, processed, dropped, waiting = (int(f[k]) for k in (
+        'frames_received', 'frames_processed', 'frames_dropped', 'frames_waiting_camera_info'))
+    assert received - 2 <= processed + dropped + waiting <= received, f
+    levels = {k: int(v) for k, v in f.items() if k.startswith('light_frames_')}
+    assert set(levels) == {'light_frames_512px', 'light_frames_448px'}, f
+    assert sum(levels.values()) == int(f['light_frames']) <= processed + 1, f
+    assert f['mode'] in ('full', 'light') and 0 <= int(f['light_level']) <= 2, f
+    outputs = read_outputs(tmp_path / 'out' / 'output_bag')
+    gt = _ground_truth(BAG)
+    ev = evaluate_trajectory(outputs['stamps'], outputs['poses'], gt['stamps'], gt['poses'],
+                             metric=True)
+    assert ev.metrics['ramp_altitude_rmse_sim3_m'] < RAMP_ALTITUDE_MAX_M, ev.metrics
+    assert max_altitude_step_m(outputs['poses']) < ALTITUDE_STEP_MAX_M
+    stamps, poses = outputs['path']
+    ev = evaluate_trajectory(stamps, poses, gt['stamps'], gt['poses'], metric=True)
+    assert ev.metrics['ate_sim3_rmse_m'] < PATH_ATE_SIM3_MAX_M, ev.metrics
+    assert outputs['cloud'] is not None and len(np.unique(outputs['cloud'].floors)) >= 2
 
 
 @pytest.mark.parametrize('domain', [98])
