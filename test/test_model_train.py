@@ -372,6 +372,8 @@ def test_shipped_config_files_match_the_code() -> None:
     staged = json.loads((REPO / 'stages' / 'photo075' / 'semfeat.json').read_text())
     assert staged['training']['init_weights'] == photo['init_weights']
     assert photo2['init_weights'] == 'stages/photo075/semfeat.safetensors'
+    staged2 = json.loads((REPO / 'stages' / 'photo075_2' / 'semfeat.json').read_text())
+    assert staged2['training']['init_weights'] == photo2['init_weights']
     assert meta['training']['train_only'] == stage12['train_only']
     assert meta['training']['teacher'] == 'xfeat'
     assert stage5['train_only'] == [] and stage5['warmup_fraction'] == 0.0  # the whole network
