@@ -206,14 +206,14 @@ class FeatureNode(Node):
             raise ValueError(f'warmup_size must be [width, height] >= 16 px or [0, 0] (none), '
                              f'got {warmup}')
         # the light levels: the same network at smaller inputs, readied beside the full one
-        sizes = light_sizes(c) if c.frontend == 'semfeat' else []
+        self.light_sizes = light_sizes(c) if c.frontend == 'semfeat' else []
         self.light_frontends = [
             make_frontend('semfeat', replace(frontend_config(c), resize_max=size))
-            for size in sizes]
+            for size in self.light_sizes]
         # relative costs: the input's pixels against the full mode's; the first frames run while
         # the other nodes start too, so the node starts at its first light level
-        self.governor = LoadGovernor([1.0] + [(s / c.resize_max) ** 2 for s in sizes],
-                                     start_level=min(1, len(sizes)))
+        self.governor = LoadGovernor([1.0] + [(s / c.resize_max) ** 2 for s in self.light_sizes],
+                                     start_level=min(1, len(self.light_sizes)))
         if any(warmup):
             for fe in self._frontends():
                 fe.prepare(*warmup)
@@ -338,14 +338,12 @@ class FeatureNode(Node):
             self.pub_color.publish(numpy_to_image(overlay, 'rgb8', stamp_ns=stamp_ns,
                                                   frame_id=frame_id, msg_cls=Image))
         self.health.on_output(stamp_ns, wall_time() - t0)
-        if self.light_frontends:
-            self.governor.on_done(wall_time() - t0, self._worker.dropped > dropped)
+        self.governor.on_done(wall_time() - t0, self._worker.dropped > dropped)
 
     def _current_frontend(self) -> Any:
-        """The front end of the governor's level: the full one at level 0."""
-        level = self.governor.level
-        return self.light_frontends[level - 1] if level and self.light_frontends else \
-            self.frontend
+        """The front end of the governor's level: the full one at level 0 (the only level
+        without light front ends)."""
+        return [self.frontend, *self.light_frontends][self.governor.level]
 
     def _frontends(self) -> list[Any]:
         """The front ends this node runs: the full one and those of the light levels."""
@@ -358,8 +356,8 @@ class FeatureNode(Node):
         self.health.extra.update(
             mode='full' if current is self.frontend else 'light', light_level=str(g.level),
             light_frames=str(g.light_frames), mode_switches=str(g.switches))
-        for fe, n in zip(self.light_frontends, g.level_frames[1:]):
-            self.health.extra[f'light_frames_{fe.extractor.conf["resize_max"]}px'] = str(n)
+        for size, n in zip(self.light_sizes, g.level_frames[1:]):
+            self.health.extra[f'light_frames_{size}px'] = str(n)
         q50, q95 = self._queued.percentiles()
         self.health.extra.update(queued_p50_s=f'{q50:.4f}', queued_p95_s=f'{q95:.4f}')
         counts = self._camera_gate.counts

@@ -121,6 +121,10 @@ def _sample_figures(frames: list[Any], out: Path) -> dict[str, str]:
     return files
 
 
+LEVEL_KEY = re.compile(r'light_frames_(\d+)px')
+"""feature_node's /diagnostics key of the frames at one light level (its input size, px)."""
+
+
 def _diag_value(diag: dict[str, dict[str, str]], node: str, key: str) -> float | None:
     try:
         return float(diag[node][key])
@@ -143,8 +147,7 @@ def write_report(bag: Path, out: Path, run: dict[str, Any]) -> dict[str, Any]:
         nodes[node] = {k: _diag_value(diag, node, k) for k in (
             'frames_received', 'frames_processed', 'frames_dropped', 'errors_rejected',
             'latency_p50_s', 'latency_p95_s', 'compute_p50_s', 'compute_p95_s')}
-        per_level = sorted((k for k in diag.get(node, {}) if re.fullmatch(
-            r'light_frames_\d+px', k)), key=lambda k: -int(k[13:-2]))  # largest input first
+        per_level = [k for k in diag.get(node, {}) if LEVEL_KEY.fullmatch(k)]  # node's order
         for k in ('queued_p50_s', 'queued_p95_s', 'light_frames', *per_level):
             if (v := _diag_value(diag, node, k)) is not None:  # feature_node's own
                 nodes[node][k] = v
@@ -202,7 +205,7 @@ def write_report(bag: Path, out: Path, run: dict[str, Any]) -> dict[str, Any]:
 
 def _levels(v: dict[str, Any]) -> str:
     """`` (512 px: 20, 448 px: 168)``: feature_node's frames at each light level."""
-    levels = [f'{k[13:-2]} px: {n:.0f}' for k, n in v.items() if k.startswith('light_frames_')]
+    levels = [f'{m[1]} px: {n:.0f}' for k, n in v.items() if (m := LEVEL_KEY.fullmatch(k))]
     return f' ({", ".join(levels)})' if levels else ''
 
 
