@@ -9,6 +9,7 @@ import pytest
 from semfeat_ros.evaluation.groundtruth import HomographyGroundTruth, sample_mask
 from semfeat_ros.evaluation.methods import (
     compatibility_matrix,
+    fill_mutual_nn,
     mutual_nn_opencv,
     mutual_nn_similarity,
 )
@@ -198,6 +199,18 @@ def test_mutual_nn() -> None:
 
     assert mutual_nn_opencv(a, b, cv2.NORM_HAMMING).tolist() == [[0, 1], [1, 0]]
     assert mutual_nn_opencv(a[:0], b, cv2.NORM_HAMMING).shape == (0, 2)
+
+
+def test_fill_mutual_nn_matches_only_the_unmatched() -> None:
+    d = np.eye(4, dtype=np.float32)  # four unit descriptors, each its own nearest neighbour
+    # 0 and 1 are matched (0 -> 1 crosswise): the fill pairs 2 and 3 with themselves
+    assert fill_mutual_nn(d, d, np.array([[0, 1]])).tolist() == [[2, 2], [3, 3]]
+    # 2 is as close to both rows of b (a ratio-test tie), 0 and 1 below the minimum
+    # similarity: nothing; with one row of b, 2 pairs with it
+    b = np.array([[0, 0, 0.8, 0.6], [0, 0, 0.8, -0.6]], np.float32)
+    assert fill_mutual_nn(d[:3], b, np.zeros((0, 2), np.int64)).tolist() == []
+    assert fill_mutual_nn(d[:3], b[:1], np.zeros((0, 2), np.int64)).tolist() == [[2, 0]]
+    assert fill_mutual_nn(d, d, np.array([[i, i] for i in range(4)])).shape == (0, 2)
 
 
 def test_compatibility_matrix() -> None:

@@ -176,6 +176,12 @@ def test_semfeat_glue_matches_a_warped_copy(offline: None) -> None:
     assert len(m) >= 60, len(m)
     assert correct.mean() >= 0.85, correct.mean()
     assert len(np.unique(m[:, 0])) == len(m) == len(np.unique(m[:, 1]))
+    # semfeat_lg_nn: the same matches, then mutual NN among the keypoints left unmatched
+    filled = build_method('semfeat_lg_nn', conf)
+    assert filled.extractor is lg.extractor and filled.matcher is lg.matcher
+    mf = filled.match(fa, fb, pair).matches
+    assert {tuple(p) for p in m.tolist()} < {tuple(p) for p in mf.tolist()}
+    assert len(np.unique(mf[:, 0])) == len(mf) == len(np.unique(mf[:, 1]))
     # Wrong descriptors (another image's, in the same order) leave the matcher few matches,
     # and few of them correct: it matches on the descriptors, not on the positions alone.
     other = lg.extractor.extract(np.ascontiguousarray(img[::-1, ::-1]), full)

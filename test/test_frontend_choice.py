@@ -182,6 +182,35 @@ def test_learned_matching_of_the_network_features(camera) -> None:
         SequentialMatcher({'matching': {'learned_early_exit': 'yes'}})
 
 
+@pytest.mark.skipif(not SHIPPED_GLUE.is_file(), reason='no shipped SemfeatGlue weights')
+def test_learned_matching_filled_by_nearest_neighbours(camera) -> None:
+    fe = make_frontend('semfeat', FrontendConfig(num_threads=1), 500, network_labels=True)
+    a = matcher_frame(1_000_000_000, fe.process(textured(5), camera), camera, 'cam')
+    b = matcher_frame(1_100_000_000, fe.process(textured(5, 9), camera), camera, 'cam')
+    conf = {'matching': {'method': 'learned', 'features': 'semfeat', 'learned_min_score': 0.9},
+            'verification': {'min_inliers': 8}}
+
+    def matches(**kw) -> np.ndarray:
+        m = SequentialMatcher({**conf, 'matching': {**conf['matching'], **kw}})
+        m.process(a)
+        return m.process(b).matches
+
+    learned, filled = matches(), matches(learned_fill_nn=True)
+    pairs = {tuple(p) for p in filled.tolist()}
+    assert {tuple(p) for p in learned.tolist()} <= pairs  # the learned matches stay
+    added = np.array(sorted(pairs - {tuple(p) for p in learned.tolist()}))
+    assert len(added) > 10
+    # each added pair is unmatched by the learned matcher on both sides ...
+    assert not np.isin(added[:, 0], learned[:, 0]).any()
+    assert not np.isin(added[:, 1], learned[:, 1]).any()
+    # ... and passes the nearest-neighbour rule: similarity >= min_similarity (0.5)
+    sim = np.sum(a.descriptors[added[:, 0]] * b.descriptors[added[:, 1]], axis=1)
+    assert (sim >= 0.5 - 1e-6).all()
+    assert len(matches(learned_fill_nn=True, min_similarity=1.0)) == len(learned)
+    with pytest.raises(MatchingConfigError, match='learned_fill_nn'):
+        SequentialMatcher({'matching': {'learned_fill_nn': 1}})
+
+
 def test_node_parameters() -> None:
     from semfeat_ros.nodes.feature_node import FeatureNodeConfig
     from semfeat_ros.nodes.matcher_node import (

@@ -512,6 +512,9 @@ class LightGlueMethod:
     extractor: Extractor
     matcher: object
     """``semfeat_ros.model.peers.PeerMatcher`` whose descriptor size the extractor gives."""
+    fill_nn: bool = False
+    """Complete the matcher's matches with the mutual nearest neighbours among the keypoints it
+    left unmatched (:func:`fill_mutual_nn`)."""
 
     def match(self, fa: Features, fb: Features, pair: Pair) -> MatchResult:
         from semfeat_ros.model.peers import PeerFeatures
@@ -522,7 +525,26 @@ class LightGlueMethod:
 
         matches, _ = self.matcher.match(peer(fa), peer(fb), pair.image_a.shape[1::-1],
                                         pair.image_b.shape[1::-1])
+        matches = np.asarray(matches, dtype=np.int64).reshape(-1, 2)
+        if self.fill_nn:
+            matches = np.concatenate(
+                [matches, fill_mutual_nn(fa.descriptors, fb.descriptors, matches)])
         return MatchResult(_sorted_matches(matches))
+
+
+def fill_mutual_nn(desc_a: np.ndarray, desc_b: np.ndarray, matches: np.ndarray) -> np.ndarray:
+    """Matches (K, 2) among the keypoints that ``matches`` (M, 2) leaves unmatched on both
+    sides, by matcher_node's nearest-neighbour rule on the unit descriptors (N_a, D) and
+    (N_b, D): mutual, ratio test and minimum similarity at its defaults
+    (:func:`semfeat_ros.matching.nn.match_float`); indices into the full sets."""
+    from semfeat_ros.matching.nn import match_float
+
+    matches = np.asarray(matches, dtype=np.int64).reshape(-1, 2)
+    free_a = np.setdiff1d(np.arange(len(desc_a)), matches[:, 0])
+    free_b = np.setdiff1d(np.arange(len(desc_b)), matches[:, 1])
+    nn = match_float(np.asarray(desc_a, np.float32)[free_a],
+                     np.asarray(desc_b, np.float32)[free_b]).indices
+    return np.stack([free_a[nn[:, 0]], free_b[nn[:, 1]]], axis=1).astype(np.int64)
 
 
 def _peer_factory(kind: str, lightglue: bool) -> MethodFactory:
@@ -639,3 +661,14 @@ def _semfeat_lg(conf: MethodConf) -> Method:
     network."""
     return LightGlueMethod('semfeat_lg', SEMFEAT_LG_LABEL, semfeat_extractor(conf),
                            semfeat_glue(conf))
+
+
+SEMFEAT_LG_NN_LABEL = 'Ours (semfeat + SemfeatGlue + NN fill)'
+
+
+@register_method('semfeat_lg_nn', SEMFEAT_LG_NN_LABEL)
+def _semfeat_lg_nn(conf: MethodConf) -> Method:
+    """``semfeat_lg`` completed by mutual NN among the keypoints SemfeatGlue left unmatched
+    (matcher_node's ``learned_fill_nn``)."""
+    return LightGlueMethod('semfeat_lg_nn', SEMFEAT_LG_NN_LABEL, semfeat_extractor(conf),
+                           semfeat_glue(conf), fill_nn=True)

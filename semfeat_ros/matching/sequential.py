@@ -70,6 +70,11 @@ default_conf: dict[str, Any] = {
         # confidences say 95 % of the points' matches are settled (LightGlue's early exit);
         # False: every layer runs. LighterGlue's confidences are untrained: it always runs all.
         'learned_early_exit': True,
+        # learned: complete the learned matches with the mutual nearest neighbours (this
+        # section's ratio test, minimum similarity and gates) among the keypoints the matcher
+        # left unmatched on both sides. Off: more verified matches on the ViSP sequences, a lower
+        # inlier ratio on the real fisheye frames and no better long drives (docs/RESULTS.md).
+        'learned_fill_nn': False,
         # 'float': L2-normalised float descriptors compared by cosine similarity (the network);
         # 'binary': packed uint8 descriptors compared by Hamming distance (ORB/BRISK baselines).
         'descriptor_type': 'float',
@@ -126,9 +131,10 @@ def _check_conf(conf: Mapping[str, Any]) -> None:
         raise MatchingConfigError("matching.method 'learned' needs float descriptors")
     check_range(m, 'learned_min_score', 0.0, 1.0, 'matching')
     check_range(m, 'learned_num_threads', 1, 256, 'matching', integer=True)
-    if not isinstance(m['learned_early_exit'], bool):
-        raise MatchingConfigError(f"matching.learned_early_exit: expected true or false, got "
-                                  f"{m['learned_early_exit']!r}")
+    for key in ('learned_early_exit', 'learned_fill_nn'):
+        if not isinstance(m[key], bool):
+            raise MatchingConfigError(f'matching.{key}: expected true or false, got '
+                                      f'{m[key]!r}')
     if m['descriptor_type'] not in ('float', 'binary'):
         raise MatchingConfigError(
             f"matching.descriptor_type: expected 'float' or 'binary', got "
@@ -425,6 +431,8 @@ class SequentialMatcher:
                                         'no image_width / image_height and the matcher no camera')
             res = self._learned.match(f0.keypoints[rows], f0.descriptors[rows],
                                       f1.keypoints[cols], f1.descriptors[cols], (w, h), **kw)
+            if m['learned_fill_nn']:
+                res = self._fill_nn(res, f0, rows, f1, cols)
         elif m['descriptor_type'] == 'binary':
             res = match_binary(f0.descriptors[rows], f1.descriptors[cols],
                                mutual=m['mutual_check'], ratio=m['ratio_threshold'],
@@ -435,6 +443,21 @@ class SequentialMatcher:
                               min_similarity=m['min_similarity'], **kw)
         res.indices = np.stack([rows[res.indices[:, 0]], cols[res.indices[:, 1]]], axis=1)
         return res
+
+    def _fill_nn(self, res: Matches, f0: _Frame, rows: np.ndarray, f1: _Frame,
+                 cols: np.ndarray) -> Matches:
+        """``res`` (indices into ``rows`` / ``cols``) and the nearest-neighbour matches among
+        the rows and columns it leaves unmatched."""
+        free0 = np.setdiff1d(np.arange(len(rows)), res.indices[:, 0])
+        free1 = np.setdiff1d(np.arange(len(cols)), res.indices[:, 1])
+        if free0.size == 0 or free1.size == 0:
+            return res
+        fill = self._match(f0, rows[free0], f1, cols[free1])  # full indices
+        pos0 = np.searchsorted(rows, fill.indices[:, 0])
+        pos1 = np.searchsorted(cols, fill.indices[:, 1])
+        return Matches(np.concatenate([res.indices, np.stack([pos0, pos1], axis=1)]),
+                       np.concatenate([res.scores, fill.scores]),
+                       np.concatenate([res.distances, fill.distances]))
 
     def _restart_reason(self, frame: FrameFeatures, sig: tuple[str, int]) -> str:
         if self._last_stamp is None:

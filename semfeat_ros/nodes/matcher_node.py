@@ -90,6 +90,10 @@ class MatcherNodeConfig:
                                      'the first layer where its token confidences say the '
                                      'matches are settled; false runs all six layers',
                                      read_only=True)
+    learned_fill_nn: bool = param(False, 'learned: add the mutual nearest neighbours (ratio '
+                                  'test, min_similarity, displacement gate) among the '
+                                  'keypoints the learned matcher left unmatched',
+                                  read_only=True)
     ratio_threshold: float = param(0.9, 'Lowe ratio test (best <= ratio * second best); '
                                    'may change at run time', range=(0.0, 1.0))
     min_similarity: float = param(0.5, 'Minimum cosine similarity of a match; may change at '
@@ -149,6 +153,7 @@ def matcher_conf(c: MatcherNodeConfig, frontend: str | None = None,
                      'max_displacement': c.max_displacement, 'method': matcher or c.matcher,
                      'features': frontend, 'learned_min_score': c.learned_min_score,
                      'learned_early_exit': c.learned_early_exit,
+                     'learned_fill_nn': c.learned_fill_nn,
                      'descriptor_type': 'binary' if frontend in BINARY_FRONTENDS else 'float'},
         'semantic': {'enabled': c.semantic},
         'verification': {'threshold_rad': c.threshold_rad, 'min_inliers': c.min_inliers,
