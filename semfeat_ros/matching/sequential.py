@@ -61,8 +61,9 @@ default_conf: dict[str, Any] = {
         'method': 'mnn',
         # Front end that made the descriptors ('semfeat', 'xfeat', 'sift', 'orb'; '' unknown).
         'features': '',
-        # learned: minimum match confidence (LightGlue's default is 0.1; at 0.1 the long rendered
-        # drives lose a level or gain ATE against mnn, at 0.5 they do not: docs/RESULTS.md).
+        # learned: minimum match confidence (LightGlue's default is 0.1; at 0.1 the second long
+        # rendered drive maps with 0.69-0.88 m ATE under three RANSAC seeds, at 0.5 within the
+        # seeds' spread of mnn's: docs/RESULTS.md).
         'learned_min_score': 0.5,
         # learned: torch intra-op threads (torch.set_num_threads, process-wide).
         'learned_num_threads': 1,
