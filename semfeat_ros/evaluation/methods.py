@@ -537,14 +537,14 @@ def fill_mutual_nn(desc_a: np.ndarray, desc_b: np.ndarray, matches: np.ndarray) 
     sides, by matcher_node's nearest-neighbour rule on the unit descriptors (N_a, D) and
     (N_b, D): mutual, ratio test and minimum similarity at its defaults
     (:func:`semfeat_ros.matching.nn.match_float`); indices into the full sets."""
-    from semfeat_ros.matching.nn import match_float
+    from semfeat_ros.matching.nn import Matches, fill_unmatched, match_float
 
     matches = np.asarray(matches, dtype=np.int64).reshape(-1, 2)
-    free_a = np.setdiff1d(np.arange(len(desc_a)), matches[:, 0])
-    free_b = np.setdiff1d(np.arange(len(desc_b)), matches[:, 1])
-    nn = match_float(np.asarray(desc_a, np.float32)[free_a],
-                     np.asarray(desc_b, np.float32)[free_b]).indices
-    return np.stack([free_a[nn[:, 0]], free_b[nn[:, 1]]], axis=1).astype(np.int64)
+    da, db = np.asarray(desc_a, np.float32), np.asarray(desc_b, np.float32)
+    none = np.zeros(len(matches), np.float32)
+    res = fill_unmatched(Matches(matches, none, none), len(da), len(db),
+                         lambda i, j: match_float(da[i], db[j]))
+    return res.indices[len(matches):]
 
 
 def _peer_factory(kind: str, lightglue: bool) -> MethodFactory:

@@ -24,7 +24,7 @@ augmented with a one-hot label block), so it costs one slightly wider matrix pro
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -303,6 +303,22 @@ def match_float(desc0: np.ndarray, desc1: np.ndarray, *, labels0: np.ndarray | N
     return Matches(indices=np.stack([rows, cols], axis=1).astype(np.int64),
                    scores=np.clip(best, 0.0, 1.0).astype(np.float32),
                    distances=np.sqrt(np.maximum(2.0 - 2.0 * best, 0.0)).astype(np.float32))
+
+
+def fill_unmatched(res: Matches, n0: int, n1: int,
+                   match: Callable[[np.ndarray, np.ndarray], Matches]) -> Matches:
+    """``res`` (indices into sets of ``n0`` and ``n1`` features) and the matches that
+    ``match(free0, free1)`` finds among the features ``res`` leaves unmatched on both sides
+    (``free0`` / ``free1``: their indices; it returns indices into those arrays)."""
+    free0 = np.setdiff1d(np.arange(n0), res.indices[:, 0])
+    free1 = np.setdiff1d(np.arange(n1), res.indices[:, 1])
+    if free0.size == 0 or free1.size == 0:
+        return res
+    fill = match(free0, free1)
+    added = np.stack([free0[fill.indices[:, 0]], free1[fill.indices[:, 1]]], axis=1)
+    return Matches(np.concatenate([res.indices, added]).astype(np.int64),
+                   np.concatenate([res.scores, fill.scores]).astype(np.float32),
+                   np.concatenate([res.distances, fill.distances]).astype(np.float32))
 
 
 def bytes_from_floats(desc: np.ndarray) -> np.ndarray:

@@ -39,6 +39,7 @@ from semfeat_ros.matching.nn import (
     DEFAULT_COMPATIBLE_GROUPS,
     Matches,
     compatibility_from_labels,
+    fill_unmatched,
     match_binary,
     match_float,
     normalize_descriptors,
@@ -414,8 +415,15 @@ class SequentialMatcher:
 
     def _match(self, f0: _Frame, rows: np.ndarray, f1: _Frame, cols: np.ndarray,
                learned: bool = False) -> Matches:
-        """Matching of features ``rows`` of f0 against ``cols`` of f1 (full indices): mutual
-        nearest neighbour, or the learned matcher when ``learned``."""
+        """Matching of features ``rows`` of f0 against ``cols`` of f1 (full indices in and
+        out): mutual nearest neighbour, or the learned matcher when ``learned``."""
+        res = self._match_subset(f0, rows, f1, cols, learned)
+        res.indices = np.stack([rows[res.indices[:, 0]], cols[res.indices[:, 1]]], axis=1)
+        return res
+
+    def _match_subset(self, f0: _Frame, rows: np.ndarray, f1: _Frame, cols: np.ndarray,
+                      learned: bool = False) -> Matches:
+        """:meth:`_match` with indices into ``rows`` / ``cols`` out."""
         m = self.conf['matching']
         kw: dict[str, Any] = {}
         if self.compatibility is not None:
@@ -432,8 +440,9 @@ class SequentialMatcher:
                                         'no image_width / image_height and the matcher no camera')
             res = self._learned.match(f0.keypoints[rows], f0.descriptors[rows],
                                       f1.keypoints[cols], f1.descriptors[cols], (w, h), **kw)
-            if m['learned_fill_nn']:
-                res = self._fill_nn(res, f0, rows, f1, cols)
+            if m['learned_fill_nn']:  # nearest neighbours among what it left unmatched
+                res = fill_unmatched(res, len(rows), len(cols), lambda i, j: self._match_subset(
+                    f0, rows[i], f1, cols[j]))
         elif m['descriptor_type'] == 'binary':
             res = match_binary(f0.descriptors[rows], f1.descriptors[cols],
                                mutual=m['mutual_check'], ratio=m['ratio_threshold'],
@@ -442,23 +451,7 @@ class SequentialMatcher:
             res = match_float(f0.descriptors[rows], f1.descriptors[cols],
                               mutual=m['mutual_check'], ratio=m['ratio_threshold'],
                               min_similarity=m['min_similarity'], **kw)
-        res.indices = np.stack([rows[res.indices[:, 0]], cols[res.indices[:, 1]]], axis=1)
         return res
-
-    def _fill_nn(self, res: Matches, f0: _Frame, rows: np.ndarray, f1: _Frame,
-                 cols: np.ndarray) -> Matches:
-        """``res`` (indices into ``rows`` / ``cols``) and the nearest-neighbour matches among
-        the rows and columns it leaves unmatched."""
-        free0 = np.setdiff1d(np.arange(len(rows)), res.indices[:, 0])
-        free1 = np.setdiff1d(np.arange(len(cols)), res.indices[:, 1])
-        if free0.size == 0 or free1.size == 0:
-            return res
-        fill = self._match(f0, rows[free0], f1, cols[free1])  # full indices
-        pos0 = np.searchsorted(rows, fill.indices[:, 0])
-        pos1 = np.searchsorted(cols, fill.indices[:, 1])
-        return Matches(np.concatenate([res.indices, np.stack([pos0, pos1], axis=1)]),
-                       np.concatenate([res.scores, fill.scores]),
-                       np.concatenate([res.distances, fill.distances]))
 
     def _restart_reason(self, frame: FrameFeatures, sig: tuple[str, int]) -> str:
         if self._last_stamp is None:
