@@ -19,6 +19,7 @@ from semfeat_ros.model.losses import (
     keypoint_loss,
     keypoint_peaky_loss,
     keypoint_repeat_loss,
+    keypoint_reprojection_loss,
     lovasz_softmax_loss,
     sample_descriptors,
     segmentation_loss,
@@ -550,6 +551,68 @@ def test_keypoint_peaky_loss_rewards_one_clear_peak_a_window() -> None:
     assert float(total) == pytest.approx(float(base_total) + 2.0 * peaky, abs=1e-5)
     with pytest.raises(ModelConfigError, match='kp_peaky_weight'):
         MultiTaskLoss({'kp_peaky_weight': -1.0})
+
+
+def _blob_logits(points: list[tuple[float, float]], h: int, w: int) -> torch.Tensor:
+    """(h, w) logits of Gaussian heat blobs (sigma 1 px) centred at sub-pixel (u, v)."""
+    vv, uu = torch.meshgrid(torch.arange(h).float(), torch.arange(w).float(), indexing='ij')
+    heat = torch.zeros(h, w)
+    for u, v in points:
+        heat = torch.maximum(heat, torch.exp(-((uu - u) ** 2 + (vv - v) ** 2) / 2))
+    return torch.logit(heat.clamp(1e-4, 1 - 1e-4))
+
+
+def test_keypoint_reprojection_loss_is_the_refined_peaks_offset_in_px() -> None:
+    h, w, shift = 32, 40, (2.3, -1.4)  # view b: view a moved by a sub-pixel shift
+    pts = [(8.2, 9.7), (20.4, 12.1), (14.6, 22.3), (30.5, 18.8)]
+    flow = _identity_flow(1, h, w)
+    flow[..., 0] += shift[0]
+    flow[..., 1] += shift[1]
+    valid = torch.ones(1, h, w, dtype=torch.bool)
+    moved = [(u + shift[0], v + shift[1]) for u, v in pts]
+    follows = torch.stack([_blob_logits(pts, h, w), _blob_logits(moved, h, w)])[:, None]
+    # the centroid of a window truncated at 3 px is within a few hundredths of the blob centre
+    assert keypoint_reprojection_loss(follows, flow, valid).item() < 0.08
+    # view b's blobs 1 px right of where the flow puts them: the loss reads ~1 px
+    off = [(u + 1.0, v) for u, v in moved]
+    x = torch.stack([_blob_logits(pts, h, w), _blob_logits(off, h, w)])[:, None]
+    x.requires_grad_()
+    loss = keypoint_reprojection_loss(x, flow, valid)
+    assert loss.item() == pytest.approx(1.0, abs=0.1)
+    loss.backward()
+    assert torch.isfinite(x.grad).all() and x.grad[1].abs().sum() > 0
+    # top_k 1 reads one peak only; peaks without a valid correspondence are not used
+    assert keypoint_reprojection_loss(x, flow, valid, top_k=1).item() == pytest.approx(
+        1.0, abs=0.1)
+    none = keypoint_reprojection_loss(x, flow, torch.zeros_like(valid))
+    assert none.item() == 0.0 and none.requires_grad
+    # peaks moved outside view b count for nothing
+    far = flow.clone()
+    far[..., 0] += 100.0
+    assert keypoint_reprojection_loss(x, far, valid).item() == 0.0
+    with pytest.raises(ModelInputError, match='flow'):
+        keypoint_reprojection_loss(x, flow[:, :-1], valid)
+    with pytest.raises(ModelConfigError, match='kp_reproj_top_k'):
+        MultiTaskLoss({'kp_reproj_top_k': 0})
+    with pytest.raises(ModelConfigError, match='kp_reproj_radius'):
+        MultiTaskLoss({'kp_reproj_radius': 2.5})
+    with pytest.raises(ModelInputError, match='kp_reproj_weight'):
+        MultiTaskLoss({'kp_reproj_weight': 1.0})(
+            {'keypoint_logits': x}, {'kp_target': torch.zeros(2, h, w),
+                                     'kp_valid': torch.ones(2, h, w, dtype=torch.bool)})
+    # in the total loss: logged, and added with its weight
+    torch.manual_seed(0)
+    pred = {'keypoint_logits': x.detach(),
+            'descriptors': F.normalize(torch.randn(2, 4, h // 8, w // 8), dim=1),
+            'segmentation_logits': torch.randn(2, 19, h // 4, w // 4)}
+    batch = {'kp_target': torch.zeros(2, h, w), 'kp_valid': torch.ones(2, h, w, dtype=torch.bool),
+             'label': torch.full((2, h, w), 255), 'points_a': torch.zeros(1, 1, 2),
+             'points_b': torch.zeros(1, 1, 2), 'corr_valid': torch.zeros(1, 1, dtype=torch.bool),
+             'flow': flow, 'flow_valid': valid}
+    base_total, base = MultiTaskLoss()(pred, batch)
+    total, logs = MultiTaskLoss({'kp_reproj_weight': 0.5})(pred, batch)
+    assert logs['reproj'] == pytest.approx(loss.item(), abs=1e-5) and 'reproj' not in base
+    assert float(total) == pytest.approx(float(base_total) + 0.5 * loss.item(), abs=1e-4)
 
 
 def test_segmentation_loss_ignores_255() -> None:

@@ -399,6 +399,15 @@ def test_shipped_config_files_match_the_code() -> None:
         load_train_conf({'freeze_levels': 9})
     with pytest.raises(ModelConfigError, match='dense_flow'):
         load_train_conf({'loss': {'kp_repeat_weight': 1.0}})
+    with pytest.raises(ModelConfigError, match='kp_reproj_weight > 0 needs data.dense_flow'):
+        load_train_conf({'loss': {'kp_reproj_weight': 1.0}})
+    # the reprojection probe: the shipped recipe from the shipped weights plus that one term
+    reproj = load_train_conf(read_config(REPO / 'config' / 'distill_reproj.yaml'))
+    assert reproj['loss']['kp_reproj_weight'] > 0 == photo2['loss']['kp_reproj_weight']
+    assert {k: v for k, v in reproj['loss'].items() if k != 'kp_reproj_weight'} == \
+        {k: v for k, v in photo2['loss'].items() if k != 'kp_reproj_weight'}
+    assert {k: v for k, v in reproj.items() if k not in ('init_weights', 'steps', 'loss')} == \
+        {k: v for k, v in photo2.items() if k not in ('init_weights', 'steps', 'loss')}
     with pytest.raises(ModelConfigError, match='multiples of the network stride, 8 px'):
         load_train_conf({'network': {'encoder_channels': [8, 8, 8]},
                          'data': {'crop_size': [96, 100]}})

@@ -66,7 +66,7 @@ default_data_conf: dict[str, Any] = {
     'drive_min_overlap': 0.25,  # drive pairs: minimum shard pair_overlap to use a pair
     'min_valid_fraction': 0.5,  # crops must have at least this fraction of labelled pixels
     'dense_flow': False,  # also give each view-a pixel's position in view b (flow_a, for
-    #                       loss.kp_repeat_weight)
+    #                       loss.kp_repeat_weight and loss.kp_reproj_weight)
     'num_points': 256,  # descriptor correspondences per pair (padded with invalid rows)
     'random_point_fraction': 0.25,  # share of those drawn at random valid pixels (not keypoints)
     'kp_max': 2000,  # max keypoint candidates per source frame

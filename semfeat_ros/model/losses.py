@@ -60,6 +60,13 @@ default_loss_conf: dict[str, Any] = {
     #                         half that)
     'kp_peaky_weight': 0.0,  # weight of L_peaky, the peakiness of the predicted heatmap in each
     #                          window (see keypoint_peaky_loss); 0: off
+    'kp_reproj_weight': 0.0,  # weight of L_reproj, the reprojection error (px) of the refined
+    #                           heatmap peaks (see keypoint_reprojection_loss); needs
+    #                           data.dense_flow; 0: off
+    'kp_reproj_radius': 3,  # px, L_reproj's window half side (the extractor's nms_radius)
+    'kp_reproj_power': 4.0,  # L_reproj's centroid weight exponent (the extractor's
+    #                          subpixel_power)
+    'kp_reproj_top_k': 128,  # view-a peaks per image that L_reproj moves into view b
     'kp_photo_targets': 1.0,  # 1: the ground-truth keypoint terms also train on photo pairs
     #                           (homographically adapted corners); 0: photos' keypoints are
     #                           learnt from the teacher only
@@ -172,6 +179,105 @@ def keypoint_repeat_loss(logits: torch.Tensor, flow: torch.Tensor, flow_valid: t
     if not ok.any():
         return logits.sum() * 0.0
     return 1.0 - cos[ok].mean()
+
+
+def _window_centroid(heat: torch.Tensor, n: torch.Tensor, rows: torch.Tensor,
+                     cols: torch.Tensor, radius: int, power: float
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Differentiable heatmap centroid of the (2r+1)^2 windows at integer centres.
+
+    The weights are ``h ** power`` normalised over the window, i.e. the extractor's soft-argmax
+    refinement (``(h / h_peak) ** power``, the peak's value cancels in the normalisation).
+
+    Args:
+        heat: (N, H, W) heatmap in [0, 1].
+        n, rows, cols: (K,) long image index and window centre (px); every window must lie
+            inside the map.
+    Returns:
+        ``(u, v)``, each (K,) float px.
+    """
+    d = torch.arange(-radius, radius + 1)
+    rr = rows[:, None, None] + d[None, :, None]
+    cc = cols[:, None, None] + d[None, None, :]
+    patch = heat[n[:, None, None], rr, cc]  # (K, 2r+1, 2r+1)
+    wgt = patch.clamp(min=1e-6) ** power
+    wgt = wgt / wgt.sum(dim=(1, 2), keepdim=True)
+    u = cols.to(heat.dtype) + (wgt * d[None, None, :].to(heat.dtype)).sum(dim=(1, 2))
+    v = rows.to(heat.dtype) + (wgt * d[None, :, None].to(heat.dtype)).sum(dim=(1, 2))
+    return u, v
+
+
+def _bilinear_points(field: torch.Tensor, n: torch.Tensor, u: torch.Tensor, v: torch.Tensor
+                     ) -> torch.Tensor:
+    """(B, H, W, C) field at float (K,) points ``(u, v)`` px of images ``n`` -> (K, C)."""
+    h, w = field.shape[1:3]
+    u0 = u.detach().floor().long().clamp(0, w - 2)
+    v0 = v.detach().floor().long().clamp(0, h - 2)
+    fu = (u - u0.to(u.dtype)).clamp(0.0, 1.0)[:, None]
+    fv = (v - v0.to(v.dtype)).clamp(0.0, 1.0)[:, None]
+    return (field[n, v0, u0] * (1 - fu) * (1 - fv) + field[n, v0, u0 + 1] * fu * (1 - fv)
+            + field[n, v0 + 1, u0] * (1 - fu) * fv + field[n, v0 + 1, u0 + 1] * fu * fv)
+
+
+def keypoint_reprojection_loss(logits: torch.Tensor, flow: torch.Tensor,
+                               flow_valid: torch.Tensor, radius: int = 3, power: float = 4.0,
+                               top_k: int = 128, threshold: float = 0.05) -> torch.Tensor:
+    """Reprojection error of the refined heatmap peaks (ALIKED's reprojection loss).
+
+    :func:`keypoint_repeat_loss` compares the two views' heatmaps window by window, which
+    rewards firing at the same place but barely at the same sub-pixel position; the matching
+    tolerance (3 px at the input, 2.4 px at the network on an 800 px frame run at 640 px) is
+    spent on exactly that. This term trains the position the extractor returns: view a's
+    ``top_k`` NMS peaks above ``threshold`` (selection without gradient) are refined as the
+    extractor refines them (:func:`_window_centroid`), moved into view b by the pair's dense
+    correspondence, and view b's heatmap is refined in the same window around the nearest
+    pixel; the loss is the mean distance between the moved point and view b's refined one.
+
+    Args:
+        logits: (2B, 1, H, W) pre-sigmoid heatmap logits, views a then views b.
+        flow: (B, H, W, 2) float px, each view-a pixel's position in view b.
+        flow_valid: (B, H, W) bool, pixels whose correspondence exists.
+        radius: px, half side of the window (the extractor's ``nms_radius``).
+        power: weight exponent (the extractor's ``subpixel_power``).
+        top_k: peaks per view-a image.
+        threshold: minimum heatmap value of a peak.
+    Returns:
+        scalar px (0 if no peak lands inside view b).
+    """
+    if logits.ndim != 4 or logits.shape[1] != 1:
+        raise ModelInputError(f'keypoint_reprojection_loss: logits {tuple(logits.shape)}, '
+                              f'expected (2B, 1, H, W)')
+    b = logits.shape[0] // 2
+    h, w = logits.shape[-2:]
+    if flow.shape != (b, h, w, 2) or flow_valid.shape != (b, h, w):
+        raise ModelInputError(f'keypoint_reprojection_loss: flow {tuple(flow.shape)} / valid '
+                              f'{tuple(flow_valid.shape)} vs logits {tuple(logits.shape)}')
+    heat = torch.sigmoid(logits.float())[:, 0]  # (2B, H, W)
+    ha, hb = heat[:b], heat[b:]
+    r = int(radius)
+    with torch.no_grad():
+        peak = ha == F.max_pool2d(ha[:, None], 2 * r + 1, 1, r)[:, 0]
+        inner = torch.zeros_like(peak)
+        inner[:, r:h - r, r:w - r] = True
+        score = torch.where(peak & inner & flow_valid & (ha > threshold), ha,
+                            torch.zeros_like(ha)).flatten(1)
+        k = min(int(top_k), score.shape[1])
+        top, idx = score.topk(k, dim=1)
+        n = torch.arange(b)[:, None].expand(b, k)[top > 0]
+        idx = idx[top > 0]
+        rows, cols = idx // w, idx % w
+    if not len(n):
+        return logits.sum() * 0.0
+    ua, va = _window_centroid(ha, n, rows, cols, r, power)
+    moved = _bilinear_points(flow.to(heat.dtype), n, ua, va)  # (K, 2) px in view b
+    with torch.no_grad():
+        cb = moved.round().long()
+        ok = (cb[:, 0] >= r) & (cb[:, 0] < w - r) & (cb[:, 1] >= r) & (cb[:, 1] < h - r)
+    if not ok.any():
+        return logits.sum() * 0.0
+    ub, vb = _window_centroid(hb, n[ok], cb[ok, 1], cb[ok, 0], r, power)
+    err = torch.stack([ub - moved[ok, 0], vb - moved[ok, 1]], dim=1)
+    return torch.sqrt((err * err).sum(dim=1) + 1e-8).mean()
 
 
 def keypoint_peaky_loss(logits: torch.Tensor, valid: torch.Tensor, patch: int = 16,
@@ -606,6 +712,11 @@ class MultiTaskLoss:
                     raise ModelConfigError(f'loss.{key} must be an even integer >= 2 (px), got '
                                            f'{value!r}')
                 continue
+            if key in ('kp_reproj_radius', 'kp_reproj_top_k'):
+                if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+                    raise ModelConfigError(f'loss.{key} must be an integer >= 1, got '
+                                           f'{value!r}')
+                continue
             if key == 'desc_dsm_neg_radius' and value is None:
                 continue
             if key == 'desc_negatives':
@@ -637,16 +748,18 @@ class MultiTaskLoss:
                 photographs) and, for distillation, the teacher's ``teacher_desc``
                 (2B, D, H/8, W/8), ``teacher_cells`` (2B, 65, H/8, W/8) and ``teacher_valid``
                 (2B, H/8, W/8) bool covered cells; for ``kp_repeat_weight``, ``flow`` (B, H, W, 2)
-                px and ``flow_valid`` (B, H, W) bool (view a's pixels in view b).
+                px and ``flow_valid`` (B, H, W) bool (view a's pixels in view b; also for
+                ``kp_reproj_weight``).
         Returns:
             ``(total, logs)``, logs holding floats ``loss``, ``kp``, ``desc``, ``seg``,
             ``pos_sim``, ``neg_sim`` (and ``distill_desc``, ``distill_kp``, ``repeat``,
-            ``peaky`` when computed).
+            ``reproj``, ``peaky`` when computed).
         """
         c = self.conf
-        if c['kp_repeat_weight'] > 0 and 'flow' not in batch:
-            raise ModelInputError("loss.kp_repeat_weight > 0 needs the batch's dense flow "
-                                  '(data.dense_flow: true)')
+        for key in ('kp_repeat_weight', 'kp_reproj_weight'):
+            if c[key] > 0 and 'flow' not in batch:
+                raise ModelInputError(f"loss.{key} > 0 needs the batch's dense flow "
+                                      '(data.dense_flow: true)')
         kp_valid = batch['kp_valid']
         if c['kp_photo_targets'] == 0 and 'photo' in batch:
             kp_valid = kp_valid & ~batch['photo'][:, None, None]
@@ -662,6 +775,11 @@ class MultiTaskLoss:
         if c['kp_repeat_weight'] > 0:
             l_repeat = keypoint_repeat_loss(pred['keypoint_logits'], batch['flow'],
                                             batch['flow_valid'], c['kp_repeat_patch'])
+        l_reproj = None
+        if c['kp_reproj_weight'] > 0:
+            l_reproj = keypoint_reprojection_loss(
+                pred['keypoint_logits'], batch['flow'], batch['flow_valid'],
+                c['kp_reproj_radius'], c['kp_reproj_power'], c['kp_reproj_top_k'])
         l_peaky = None
         if c['kp_peaky_weight'] > 0:
             l_peaky = keypoint_peaky_loss(pred['keypoint_logits'], batch['kp_valid'],
@@ -690,6 +808,8 @@ class MultiTaskLoss:
             total = total + c['desc_dsm_weight'] * l_dsm
         if l_repeat is not None:
             total = total + c['kp_repeat_weight'] * l_repeat
+        if l_reproj is not None:
+            total = total + c['kp_reproj_weight'] * l_reproj
         if l_peaky is not None:
             total = total + c['kp_peaky_weight'] * l_peaky
         distill = {}
@@ -712,6 +832,8 @@ class MultiTaskLoss:
             logs['dsm'] = float(l_dsm.detach())
         if l_repeat is not None:
             logs['repeat'] = float(l_repeat.detach())
+        if l_reproj is not None:
+            logs['reproj'] = float(l_reproj.detach())
         if l_peaky is not None:
             logs['peaky'] = float(l_peaky.detach())
         logs.update({k: float(v.detach()) for k, v in distill.items()})

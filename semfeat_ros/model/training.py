@@ -140,8 +140,9 @@ def load_train_conf(conf: dict[str, Any] | None) -> dict[str, Any]:
     if c['teacher'] is not None and c['teacher'] not in TEACHERS:
         raise ModelConfigError(f'teacher must be one of {sorted(TEACHERS)} or null, got '
                                f'{c["teacher"]!r}')
-    if c['loss']['kp_repeat_weight'] > 0 and not c['data']['dense_flow']:
-        raise ModelConfigError('loss.kp_repeat_weight > 0 needs data.dense_flow: true')
+    for key in ('kp_repeat_weight', 'kp_reproj_weight'):
+        if c['loss'][key] > 0 and not c['data']['dense_flow']:
+            raise ModelConfigError(f'loss.{key} > 0 needs data.dense_flow: true')
     if distill and c['teacher'] is None:
         raise ModelConfigError('loss.distill_desc_weight / distill_kp_weight > 0 need a teacher')
     if c['teacher'] is not None and any(int(x) % XFEAT_STRIDE for x in c['data']['crop_size']):
@@ -735,6 +736,12 @@ def model_card(model: SemFeatNet, meta: dict[str, Any], conf: dict[str, Any],
         dsm += (f"; + the cross-view heatmap consistency (weight {rw}, 1 - cosine of "
                 f"{conf['loss'].get('kp_repeat_patch')} px windows of one view's heatmap and "
                 "the other's warped onto it)")
+    qw = conf['loss'].get('kp_reproj_weight', 0.0)
+    if qw:
+        dsm += (f"; + the reprojection error of the refined heatmap peaks (weight {qw}, px: "
+                f"view a's top {conf['loss'].get('kp_reproj_top_k')} peaks refined in "
+                f"{2 * conf['loss'].get('kp_reproj_radius') + 1} px windows, moved into view b, "
+                "against view b's refined position there)")
     pw = conf['loss'].get('kp_peaky_weight', 0.0)
     if pw:
         dsm += (f"; + the heatmap's peakiness (weight {pw}, 1 - the mean of window max - window "
