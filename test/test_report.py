@@ -122,6 +122,32 @@ def test_set_reads_a_source_from_another_directory(project: Path) -> None:
         main(project / 'report.yaml', root=project, overrides={'nope': 'x'})
 
 
+def test_mean_of_row_averages_its_sources(project: Path) -> None:
+    (project / 'out/map2').mkdir()
+    (project / 'out/map2/metrics.json').write_text(json.dumps({'trajectory': {'ate_m': 0.1}}))
+    spec = yaml.safe_load(yaml.safe_dump(MANIFEST, sort_keys=False))
+    spec['sources']['map2'] = {'dir': 'out/map2', 'command': 'semfeat-map bags/c --out {dir}'}
+    spec['tables']['map']['rows'].append({'label': 'mean', 'mean_of': ['map', 'map2']})
+    (project / 'report.yaml').write_text(yaml.safe_dump(spec, sort_keys=False))
+    assert run(project) == 0
+    text = (project / 'docs/R.md').read_text()
+    assert '| bag | 0.088 |\n| mean | 0.094 |' in text  # (0.0879 + 0.1) / 2
+    assert '`out/map2/metrics.json`: `semfeat-map bags/c --out out/map2`' in text
+    spec['tables']['map']['rows'][-1]['source'] = 'map'
+    (project / 'report.yaml').write_text(yaml.safe_dump(spec, sort_keys=False))
+    with pytest.raises(ReportManifestError, match='mean_of replaces source'):
+        main(project / 'report.yaml', root=project)
+    spec['tables']['map']['rows'][-1] = {'label': 'mean', 'mean_of': []}
+    (project / 'report.yaml').write_text(yaml.safe_dump(spec, sort_keys=False))
+    with pytest.raises(ReportManifestError, match='non-empty list of sources'):
+        main(project / 'report.yaml', root=project)
+    spec['tables']['map']['rows'][-1] = {'label': 'mean', 'mean_of': ['map', 'map2']}
+    (project / 'report.yaml').write_text(yaml.safe_dump(spec, sort_keys=False))
+    (project / 'out/map2/metrics.json').write_text(json.dumps({'trajectory': {'ate_m': 'x'}}))
+    with pytest.raises(ReportInputError, match="mean_of needs numbers, got 'x'"):
+        main(project / 'report.yaml', root=project)
+
+
 def test_missing_input_is_one_line_and_non_zero(project: Path,
                                                 capsys: pytest.CaptureFixture[str]) -> None:
     assert run(project, '--set', 'real=out/absent') == 1

@@ -185,7 +185,7 @@ _TABLE = {'file': 'results.json', 'prefix': '', 'label_header': None, 'columns':
           'rows': None}
 _COLUMN = {'header': None, 'method': None, 'metric': None, 'format': None, 'scale': None}
 _ROW = {'label': None, 'source': None, 'method': None, 'metric': None, 'format': None,
-        'scale': None, 'sources': {}}
+        'scale': None, 'sources': {}, 'mean_of': None}
 
 
 def _pick(*values: Any, default: Any = None) -> Any:
@@ -193,12 +193,33 @@ def _pick(*values: Any, default: Any = None) -> Any:
     return next((v for v in values if v is not None), default)
 
 
+def _mean_sources(row: Mapping[str, Any], where: str) -> list[str]:
+    """The sources a ``mean_of`` row averages ([] for an ordinary row)."""
+    if row['mean_of'] is None:
+        return []
+    if row['source'] is not None or row['sources']:
+        raise ReportManifestError(f'{where}: mean_of replaces source and sources')
+    if not isinstance(row['mean_of'], list) or not row['mean_of']:
+        raise ReportManifestError(f'{where}.mean_of: needs a non-empty list of sources')
+    return [_text(s, f'{where}.mean_of[{i}]') for i, s in enumerate(row['mean_of'])]
+
+
+def _mean(values: list[Any], where: str) -> float:
+    """Mean of the numbers ``values`` (a ``mean_of`` cell)."""
+    bad = [v for v in values if isinstance(v, bool) or not isinstance(v, int | float)]
+    if bad:
+        raise ReportInputError(f'{where}: mean_of needs numbers, got {bad[0]!r}')
+    return float(sum(values)) / len(values)
+
+
 def render_table(name: str, spec: Mapping[str, Any], reader: _Reader) -> str:
     """The markdown of table ``name``: the table, then its inputs with their commands.
 
     A cell's value is the row's source's file at ``prefix.metric`` (``{method}`` in the prefix
     is the column's, else the row's method; ``metric``, ``format`` and ``scale`` likewise); a
-    row's ``sources`` maps a column header to another source for that cell.
+    row's ``sources`` maps a column header to another source for that cell. A row with
+    ``mean_of`` (a list of sources, instead of ``source``) holds the mean of each cell's value
+    over those sources (numbers only).
     """
     where = f'tables.{name}'
     t = merge_conf(_TABLE, spec, ReportManifestError, name=where, opaque=('columns', 'rows'))
@@ -215,26 +236,29 @@ def render_table(name: str, spec: Mapping[str, Any], reader: _Reader) -> str:
     used: list[str] = []
     for r, spec_row in enumerate(t['rows']):
         row = merge_conf(_ROW, spec_row, ReportManifestError, name=f'{where}.rows[{r}]',
-                         opaque=('sources',))
+                         opaque=('sources', 'mean_of'))
         label = _text(row['label'], f'{where}.rows[{r}].label')
         overrides = _mapping(row['sources'], f'{where}.rows[{r}].sources')
         stray = sorted(set(overrides) - set(headers))
         if stray:
             raise ReportManifestError(f'{where}.rows[{r}].sources: no column {", ".join(stray)}')
+        mean_of = _mean_sources(row, f'{where}.rows[{r}]')
         cells = [label]
         for col, header in zip(columns, headers, strict=True):
             cell = f'table {name}, row {label!r}, column {header!r}'
-            source = _text(overrides.get(header, row['source']), f'{cell}: source')
             metric = _text(_pick(col['metric'], row['metric']), f'{cell}: metric')
             method = _pick(col['method'], row['method'], default='')
             path = '.'.join(p for p in (str(t['prefix']).format(method=method), metric) if p)
-            value = _lookup(reader.load(source, file, cell), path, f'{cell} ({source})')
+            cell_sources = mean_of or [_text(overrides.get(header, row['source']),
+                                             f'{cell}: source')]
+            values = [_lookup(reader.load(source, file, cell), path, f'{cell} ({source})')
+                      for source in cell_sources]
+            value = values[0] if not mean_of else _mean(values, cell)
             cells.append(format_value(value, str(_pick(col['format'], row['format'],
                                                        default='.1f')),
                                       float(_pick(col['scale'], row['scale'], default=1.0)),
                                       cell))
-            if source not in used:
-                used.append(source)
+            used += [source for source in cell_sources if source not in used]
         lines.append('| ' + ' | '.join(cells) + ' |')
     lines += ['', 'Inputs (`semfeat-report` rewrites this table from them):', '']
     for source in used:
