@@ -136,6 +136,20 @@ def keypoint_cell_loss(logits: torch.Tensor, target: torch.Tensor,
     return ce[has].mean()
 
 
+def _check_pair_flow(caller: str, logits: torch.Tensor, flow: torch.Tensor,
+                     flow_valid: torch.Tensor) -> tuple[int, int, int]:
+    """``(B, H, W)`` of (2B, 1, H, W) pair logits and their (B, H, W, 2) flow and (B, H, W)
+    validity; raises ModelInputError naming ``caller`` otherwise."""
+    if logits.ndim != 4 or logits.shape[1] != 1:
+        raise ModelInputError(f'{caller}: logits {tuple(logits.shape)}, expected (2B, 1, H, W)')
+    b = logits.shape[0] // 2
+    h, w = logits.shape[-2:]
+    if flow.shape != (b, h, w, 2) or flow_valid.shape != (b, h, w):
+        raise ModelInputError(f'{caller}: flow {tuple(flow.shape)} / valid '
+                              f'{tuple(flow_valid.shape)} vs logits {tuple(logits.shape)}')
+    return b, h, w
+
+
 def keypoint_repeat_loss(logits: torch.Tensor, flow: torch.Tensor, flow_valid: torch.Tensor,
                          patch: int = 16, min_valid: float = 0.5) -> torch.Tensor:
     """Cross-view consistency of the predicted heatmaps (R2D2's repeatability loss).
@@ -156,14 +170,7 @@ def keypoint_repeat_loss(logits: torch.Tensor, flow: torch.Tensor, flow_valid: t
     Returns:
         scalar in [0, 1] (0 if no window qualifies).
     """
-    if logits.ndim != 4 or logits.shape[1] != 1:
-        raise ModelInputError(f'keypoint_repeat_loss: logits {tuple(logits.shape)}, expected '
-                              f'(2B, 1, H, W)')
-    b = logits.shape[0] // 2
-    h, w = logits.shape[-2:]
-    if flow.shape != (b, h, w, 2) or flow_valid.shape != (b, h, w):
-        raise ModelInputError(f'keypoint_repeat_loss: flow {tuple(flow.shape)} / valid '
-                              f'{tuple(flow_valid.shape)} vs logits {tuple(logits.shape)}')
+    b, h, w = _check_pair_flow('keypoint_repeat_loss', logits, flow, flow_valid)
     heat = torch.sigmoid(logits.float())
     scale = torch.tensor([2.0 / max(w - 1, 1), 2.0 / max(h - 1, 1)], dtype=heat.dtype)
     grid = flow.to(heat.dtype) * scale - 1.0  # pixel centres at integers: align_corners=True
@@ -244,14 +251,7 @@ def keypoint_reprojection_loss(logits: torch.Tensor, flow: torch.Tensor,
     Returns:
         scalar px (0 if no peak lands inside view b).
     """
-    if logits.ndim != 4 or logits.shape[1] != 1:
-        raise ModelInputError(f'keypoint_reprojection_loss: logits {tuple(logits.shape)}, '
-                              f'expected (2B, 1, H, W)')
-    b = logits.shape[0] // 2
-    h, w = logits.shape[-2:]
-    if flow.shape != (b, h, w, 2) or flow_valid.shape != (b, h, w):
-        raise ModelInputError(f'keypoint_reprojection_loss: flow {tuple(flow.shape)} / valid '
-                              f'{tuple(flow_valid.shape)} vs logits {tuple(logits.shape)}')
+    b, h, w = _check_pair_flow('keypoint_reprojection_loss', logits, flow, flow_valid)
     heat = torch.sigmoid(logits.float())[:, 0]  # (2B, H, W)
     ha, hb = heat[:b], heat[b:]
     r = int(radius)
