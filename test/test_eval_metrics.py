@@ -211,6 +211,13 @@ def test_fill_mutual_nn_matches_only_the_unmatched() -> None:
     assert fill_mutual_nn(d[:3], b, np.zeros((0, 2), np.int64)).tolist() == []
     assert fill_mutual_nn(d[:3], b[:1], np.zeros((0, 2), np.int64)).tolist() == [[2, 0]]
     assert fill_mutual_nn(d, d, np.array([[i, i] for i in range(4)])).shape == (0, 2)
+    # the fill's minimum similarity is matcher_node's learned_fill_min_similarity (0.7), above
+    # mutual NN's 0.5: a pair at 0.6 stays unmatched, one at 0.8 is added
+    c = np.array([[0, 0, 0.6, 0.8]], np.float32)
+    assert fill_mutual_nn(d[:3], c, np.zeros((0, 2), np.int64)).tolist() == []
+    assert fill_mutual_nn(d[[0, 1, 3]], c, np.zeros((0, 2), np.int64)).tolist() == [[2, 0]]
+    assert fill_mutual_nn(d[:3], c, np.zeros((0, 2), np.int64), min_similarity=0.5).tolist() \
+        == [[2, 0]]
 
 
 def test_compatibility_matrix() -> None:

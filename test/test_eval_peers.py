@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import skimage
 
-from semfeat_ros.evaluation.errors import MethodUnavailableError
+from semfeat_ros.evaluation.errors import ConfigError, MethodUnavailableError
 from semfeat_ros.evaluation.groundtruth import HomographyGroundTruth, Pair
 from semfeat_ros.evaluation.methods import Features, MethodConf, build_method
 from semfeat_ros.evaluation.pipeline import EvalConf, build_methods
@@ -182,6 +182,14 @@ def test_semfeat_glue_matches_a_warped_copy(offline: None) -> None:
     mf = filled.match(fa, fb, pair).matches
     assert {tuple(p) for p in m.tolist()} < {tuple(p) for p in mf.tolist()}
     assert len(np.unique(mf[:, 0])) == len(mf) == len(np.unique(mf[:, 1]))
+    # mutual NN's own looser thresholds (--fill-ratio 0.9 --fill-min-similarity 0.5) add more
+    loose = build_method('semfeat_lg_nn', MethodConf(max_features=400, extra={
+        'fill_conf': {'ratio': 0.9, 'min_similarity': 0.5}}))
+    assert len(loose.match(fa, fb, pair).matches) >= len(mf)
+    with pytest.raises(ConfigError, match='fill ratio'):
+        build_method('semfeat_lg_nn', MethodConf(extra={'fill_conf': {'ratio': 0.0}}))
+    with pytest.raises(ConfigError, match='unknown fill options'):
+        build_method('semfeat_lg_nn', MethodConf(extra={'fill_conf': {'radius': 1.0}}))
     # Wrong descriptors (another image's, in the same order) leave the matcher few matches,
     # and few of them correct: it matches on the descriptors, not on the positions alone.
     other = lg.extractor.extract(np.ascontiguousarray(img[::-1, ::-1]), full)

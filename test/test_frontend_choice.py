@@ -203,12 +203,22 @@ def test_learned_matching_filled_by_nearest_neighbours(camera) -> None:
     # each added pair is unmatched by the learned matcher on both sides ...
     assert not np.isin(added[:, 0], learned[:, 0]).any()
     assert not np.isin(added[:, 1], learned[:, 1]).any()
-    # ... and passes the nearest-neighbour rule: similarity >= min_similarity (0.5)
+    # ... and passes the fill's rule: similarity >= learned_fill_min_similarity (0.7)
     sim = np.sum(a.descriptors[added[:, 0]] * b.descriptors[added[:, 1]], axis=1)
-    assert (sim >= 0.5 - 1e-6).all()
-    assert len(matches(learned_fill_nn=True, min_similarity=1.0)) == len(learned)
+    assert (sim >= 0.7 - 1e-6).all()
+    assert len(matches(learned_fill_nn=True, learned_fill_min_similarity=1.0)) == len(learned)
+    # the fill has its own thresholds: mutual NN's min_similarity does not change it, and the
+    # looser rule of mutual NN (0.9, 0.5) adds at least as many
+    assert matches(learned_fill_nn=True, min_similarity=1.0).tolist() == filled.tolist()
+    loose = matches(learned_fill_nn=True, learned_fill_ratio=0.9,
+                    learned_fill_min_similarity=0.5)
+    assert len(loose) >= len(filled)
     with pytest.raises(MatchingConfigError, match='learned_fill_nn'):
         SequentialMatcher({'matching': {'learned_fill_nn': 1}})
+    with pytest.raises(MatchingConfigError, match='learned_fill_ratio'):
+        SequentialMatcher({'matching': {'learned_fill_ratio': 0.0}})
+    with pytest.raises(MatchingConfigError, match='learned_fill_min_similarity'):
+        SequentialMatcher({'matching': {'learned_fill_min_similarity': 1.5}})
 
 
 def test_node_parameters() -> None:

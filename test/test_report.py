@@ -202,5 +202,7 @@ def test_shipped_results_doc_matches_its_manifest() -> None:
               for line in text.splitlines() if line.startswith('<!-- semfeat-report:')]
     assert blocks == list(manifest['tables'])
     assert text.count('<!-- /semfeat-report -->') == len(blocks)
-    assert set(manifest['sources']) >= {row.get('source') for t in manifest['tables'].values()
-                                        for row in t['rows']}
+    named = {name for t in manifest['tables'].values() for row in t['rows']
+             for name in [row.get('source'), *row.get('mean_of', []),
+                          *row.get('sources', {}).values()] if name is not None}
+    assert named and set(manifest['sources']) >= named

@@ -515,6 +515,8 @@ class LightGlueMethod:
     fill_nn: bool = False
     """Complete the matcher's matches with the mutual nearest neighbours among the keypoints it
     left unmatched (:func:`fill_mutual_nn`)."""
+    fill_conf: dict[str, float] | None = None
+    """:func:`fill_mutual_nn`'s ``ratio`` / ``min_similarity`` (None: its defaults)."""
 
     def match(self, fa: Features, fb: Features, pair: Pair) -> MatchResult:
         from semfeat_ros.model.peers import PeerFeatures
@@ -528,22 +530,33 @@ class LightGlueMethod:
         matches = np.asarray(matches, dtype=np.int64).reshape(-1, 2)
         if self.fill_nn:
             matches = np.concatenate(
-                [matches, fill_mutual_nn(fa.descriptors, fb.descriptors, matches)])
+                [matches, fill_mutual_nn(fa.descriptors, fb.descriptors, matches,
+                                         **(self.fill_conf or {}))])
         return MatchResult(_sorted_matches(matches))
 
 
-def fill_mutual_nn(desc_a: np.ndarray, desc_b: np.ndarray, matches: np.ndarray) -> np.ndarray:
+def fill_mutual_nn(desc_a: np.ndarray, desc_b: np.ndarray, matches: np.ndarray,
+                   ratio: float | None = None, min_similarity: float | None = None
+                   ) -> np.ndarray:
     """Matches (K, 2) among the keypoints that ``matches`` (M, 2) leaves unmatched on both
-    sides, by matcher_node's nearest-neighbour rule on the unit descriptors (N_a, D) and
-    (N_b, D): mutual, ratio test and minimum similarity at its defaults
-    (:func:`semfeat_ros.matching.nn.match_float`); indices into the full sets."""
+    sides, by matcher_node's fill rule on the unit descriptors (N_a, D) and (N_b, D): mutual
+    nearest neighbours with the ratio test ``ratio`` and ``min_similarity`` (None: its
+    ``learned_fill_ratio`` and ``learned_fill_min_similarity``;
+    :func:`semfeat_ros.matching.nn.match_float`); indices into the full sets."""
     from semfeat_ros.matching.nn import Matches, fill_unmatched, match_float
+    from semfeat_ros.matching.sequential import default_conf
 
+    m = {'learned_fill_ratio': default_conf['matching']['learned_fill_ratio'] if ratio is None
+         else float(ratio),
+         'learned_fill_min_similarity': default_conf['matching']['learned_fill_min_similarity']
+         if min_similarity is None else float(min_similarity)}
     matches = np.asarray(matches, dtype=np.int64).reshape(-1, 2)
     da, db = np.asarray(desc_a, np.float32), np.asarray(desc_b, np.float32)
     none = np.zeros(len(matches), np.float32)
-    res = fill_unmatched(Matches(matches, none, none), len(da), len(db),
-                         lambda i, j: match_float(da[i], db[j]))
+    res = fill_unmatched(
+        Matches(matches, none, none), len(da), len(db),
+        lambda i, j: match_float(da[i], db[j], ratio=m['learned_fill_ratio'],
+                                 min_similarity=m['learned_fill_min_similarity']))
     return res.indices[len(matches):]
 
 
@@ -670,5 +683,14 @@ SEMFEAT_LG_NN_LABEL = 'Ours (semfeat + SemfeatGlue + NN fill)'
 def _semfeat_lg_nn(conf: MethodConf) -> Method:
     """``semfeat_lg`` completed by mutual NN among the keypoints SemfeatGlue left unmatched
     (matcher_node's ``learned_fill_nn``)."""
+    fill = dict(conf.extra.get('fill_conf') or {})
+    bad = sorted(set(fill) - {'ratio', 'min_similarity'})
+    if bad:
+        raise ConfigError(f'semfeat_lg_nn: unknown fill options {bad}')
+    if 'ratio' in fill and not 0.0 < float(fill['ratio']) <= 1.0:
+        raise ConfigError(f'semfeat_lg_nn: fill ratio must be in (0, 1], got {fill["ratio"]}')
+    if 'min_similarity' in fill and not -1.0 <= float(fill['min_similarity']) <= 1.0:
+        raise ConfigError(f'semfeat_lg_nn: fill minimum similarity must be in [-1, 1], got '
+                          f'{fill["min_similarity"]}')
     return LightGlueMethod('semfeat_lg_nn', SEMFEAT_LG_NN_LABEL, semfeat_extractor(conf),
-                           semfeat_glue(conf), fill_nn=True)
+                           semfeat_glue(conf), fill_nn=True, fill_conf=fill)

@@ -62,6 +62,9 @@ class EvalConf:
     """SemfeatGlue weights of ``semfeat_lg`` (None: the shipped ones)."""
     glue_conf: dict[str, object] = field(default_factory=dict)
     """Overrides of SemfeatGlue's options for ``semfeat_lg`` (e.g. ``filter_threshold``)."""
+    fill_conf: dict[str, float] = field(default_factory=dict)
+    """``semfeat_lg_nn``'s fill thresholds ``ratio`` / ``min_similarity`` (missing:
+    matcher_node's ``learned_fill_ratio`` / ``learned_fill_min_similarity``)."""
     seq_threshold_from_ransac_px: bool = False
     """``semfeat_seq`` verifies at ``ransac_px`` (``ransac_px / fx`` rad) also on pairs with a
     camera; False: with a camera it uses the matcher's own thresholds."""
@@ -154,6 +157,7 @@ def build_methods(conf: EvalConf) -> tuple[list[Method], dict[str, str]]:
     mconf = MethodConf(max_features=conf.max_features, weights=conf.weights,
                       extra={'ransac_px': conf.ransac_px, 'network_conf': conf.network_conf,
                              'glue_weights': conf.glue_weights, 'glue_conf': conf.glue_conf,
+                             'fill_conf': conf.fill_conf,
                              'seq_threshold_from_ransac_px': conf.seq_threshold_from_ransac_px})
     runnable: list[Method] = []
     skipped: dict[str, str] = {}

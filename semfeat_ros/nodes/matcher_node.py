@@ -90,10 +90,15 @@ class MatcherNodeConfig:
                                      'the first layer where its token confidences say the '
                                      'matches are settled; false runs all six layers',
                                      read_only=True)
-    learned_fill_nn: bool = param(False, 'learned: add the mutual nearest neighbours (ratio '
-                                  'test, min_similarity, displacement gate) among the '
-                                  'keypoints the learned matcher left unmatched',
-                                  read_only=True)
+    learned_fill_nn: bool = param(False, 'learned: add the mutual nearest neighbours '
+                                  '(learned_fill_ratio, learned_fill_min_similarity, '
+                                  'displacement gate) among the keypoints the learned matcher '
+                                  'left unmatched', read_only=True)
+    learned_fill_ratio: float = param(0.7, 'learned_fill_nn: ratio test of the added matches',
+                                      range=(0.0, 1.0), read_only=True)
+    learned_fill_min_similarity: float = param(0.7, 'learned_fill_nn: minimum cosine '
+                                               'similarity of the added matches',
+                                               range=(-1.0, 1.0), read_only=True)
     ratio_threshold: float = param(0.9, 'Lowe ratio test (best <= ratio * second best); '
                                    'may change at run time', range=(0.0, 1.0))
     min_similarity: float = param(0.5, 'Minimum cosine similarity of a match; may change at '
@@ -154,6 +159,8 @@ def matcher_conf(c: MatcherNodeConfig, frontend: str | None = None,
                      'features': frontend, 'learned_min_score': c.learned_min_score,
                      'learned_early_exit': c.learned_early_exit,
                      'learned_fill_nn': c.learned_fill_nn,
+                     'learned_fill_ratio': c.learned_fill_ratio,
+                     'learned_fill_min_similarity': c.learned_fill_min_similarity,
                      'descriptor_type': 'binary' if frontend in BINARY_FRONTENDS else 'float'},
         'semantic': {'enabled': c.semantic},
         'verification': {'threshold_rad': c.threshold_rad, 'min_inliers': c.min_inliers,

@@ -90,6 +90,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help='semfeat_lg: override a SemfeatGlue option (YAML value; repeatable), '
                    'e.g. filter_threshold=0.05 or width_confidence=-1 (semfeat_ros/model/'
                    'glue.py default_conf)')
+    g.add_argument('--fill-ratio', type=float, default=None, metavar='R',
+                   help="semfeat_lg_nn: ratio test of the added matches (default: "
+                   "matcher_node's learned_fill_ratio)")
+    g.add_argument('--fill-min-similarity', type=float, default=None, metavar='S',
+                   help="semfeat_lg_nn: minimum cosine similarity of the added matches "
+                   "(default: matcher_node's learned_fill_min_similarity)")
     g.add_argument('--figures', type=int, default=3,
                    help='match figures per method: the first N pairs (default 3)')
     g.add_argument('--seed', type=int, default=0, help='random seed (default 0)')
@@ -207,7 +213,10 @@ def _eval_conf(args: argparse.Namespace) -> EvalConf:
                     weights=None if args.weights is None else str(args.weights),
                     glue_weights=None if args.glue_weights is None else str(args.glue_weights),
                     n_figures=args.figures, seed=args.seed, progress=not args.no_progress,
-                    network_conf=_network_conf(args), glue_conf=dict(args.glue_set))
+                    network_conf=_network_conf(args), glue_conf=dict(args.glue_set),
+                    fill_conf={k: v for k, v in (('ratio', args.fill_ratio),
+                                                 ('min_similarity', args.fill_min_similarity))
+                               if v is not None})
 
 
 def run(args: argparse.Namespace) -> dict:
