@@ -546,17 +546,15 @@ def fill_mutual_nn(desc_a: np.ndarray, desc_b: np.ndarray, matches: np.ndarray,
     from semfeat_ros.matching.nn import Matches, fill_unmatched, match_float
     from semfeat_ros.matching.sequential import default_conf
 
-    m = {'learned_fill_ratio': default_conf['matching']['learned_fill_ratio'] if ratio is None
-         else float(ratio),
-         'learned_fill_min_similarity': default_conf['matching']['learned_fill_min_similarity']
-         if min_similarity is None else float(min_similarity)}
+    m = default_conf['matching']
+    ratio = m['learned_fill_ratio'] if ratio is None else float(ratio)
+    min_similarity = (m['learned_fill_min_similarity'] if min_similarity is None
+                      else float(min_similarity))
     matches = np.asarray(matches, dtype=np.int64).reshape(-1, 2)
     da, db = np.asarray(desc_a, np.float32), np.asarray(desc_b, np.float32)
     none = np.zeros(len(matches), np.float32)
-    res = fill_unmatched(
-        Matches(matches, none, none), len(da), len(db),
-        lambda i, j: match_float(da[i], db[j], ratio=m['learned_fill_ratio'],
-                                 min_similarity=m['learned_fill_min_similarity']))
+    res = fill_unmatched(Matches(matches, none, none), len(da), len(db), lambda i, j: match_float(
+        da[i], db[j], ratio=ratio, min_similarity=min_similarity))
     return res.indices[len(matches):]
 
 
@@ -683,14 +681,18 @@ SEMFEAT_LG_NN_LABEL = 'Ours (semfeat + SemfeatGlue + NN fill)'
 def _semfeat_lg_nn(conf: MethodConf) -> Method:
     """``semfeat_lg`` completed by mutual NN among the keypoints SemfeatGlue left unmatched
     (matcher_node's ``learned_fill_nn``)."""
+    from semfeat_ros.matching.errors import MatchingConfigError
+    from semfeat_ros.matching.sequential import checked_conf
+
     fill = dict(conf.extra.get('fill_conf') or {})
     bad = sorted(set(fill) - {'ratio', 'min_similarity'})
     if bad:
         raise ConfigError(f'semfeat_lg_nn: unknown fill options {bad}')
-    if 'ratio' in fill and not 0.0 < float(fill['ratio']) <= 1.0:
-        raise ConfigError(f'semfeat_lg_nn: fill ratio must be in (0, 1], got {fill["ratio"]}')
-    if 'min_similarity' in fill and not -1.0 <= float(fill['min_similarity']) <= 1.0:
-        raise ConfigError(f'semfeat_lg_nn: fill minimum similarity must be in [-1, 1], got '
-                          f'{fill["min_similarity"]}')
+    try:  # the matcher's own checks of its learned_fill_* keys
+        m = checked_conf({'matching': {f'learned_fill_{k}': v for k, v in fill.items()}})
+    except MatchingConfigError as exc:
+        raise ConfigError(f'semfeat_lg_nn: bad fill ratio or minimum similarity ({exc})') from exc
+    fill = {'ratio': m['matching']['learned_fill_ratio'],
+            'min_similarity': m['matching']['learned_fill_min_similarity']}
     return LightGlueMethod('semfeat_lg_nn', SEMFEAT_LG_NN_LABEL, semfeat_extractor(conf),
                            semfeat_glue(conf), fill_nn=True, fill_conf=fill)

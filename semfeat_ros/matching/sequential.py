@@ -125,6 +125,15 @@ default_conf: dict[str, Any] = {
 }
 
 
+def checked_conf(conf: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """:data:`default_conf` updated with ``conf`` (nested) and validated, as the matcher takes
+    it (raises :class:`MatchingConfigError`)."""
+    merged = merge_conf(default_conf, conf, 'conf')
+    _check_conf(merged)
+    geometry._check_conf(merged['verification'])
+    return merged
+
+
 def _check_conf(conf: Mapping[str, Any]) -> None:
     m = conf['matching']
     if m['method'] not in MATCH_METHODS:
@@ -325,9 +334,7 @@ class SequentialMatcher:
 
     def __init__(self, conf: Mapping[str, Any] | None = None, *, camera: Any = None,
                  label_set: Any = None) -> None:
-        self.conf = merge_conf(default_conf, conf, 'conf')
-        _check_conf(self.conf)
-        geometry._check_conf(self.conf['verification'])
+        self.conf = checked_conf(conf)
         if label_set is None:
             from semfeat_ros.labels import load_labels
             label_set = load_labels()
